@@ -228,7 +228,7 @@ def main(argv: list[str] | None = None) -> int:
                 signal.signal(signal.SIGINT, signal.SIG_DFL)
             except ValueError:  # not the main thread: Python's handler stays
                 pass
-    if argv is None and status in (130, 143):
+    if argv is None and status in (129, 130, 143):  # (129: guide's terminal closed, cli.hangup)
         end_interrupted(status)
     return status
 
@@ -278,7 +278,8 @@ def _main(argv: list[str] | None) -> int:
     Exit status: 0 done (a pair that cannot be ranged is a status in the output, not an error); 1 a capture or
     file error while running, or an unexpected internal error; 2 bad arguments or input (one line on stderr
     naming the argument); 130 interrupted (Ctrl-C); 141 the reader of the output went away (e.g. ``| head``);
-    143 terminated (SIGTERM: what was being written is removed, as on Ctrl-C).
+    143 terminated (SIGTERM: what was being written is removed, as on Ctrl-C); 129 guide's terminal closed (SIGHUP,
+    ``cli.hangup``: the other commands die of it, Python's default).
     """
     parser = build_parser()
     args, extras = parser.parse_known_args(argv)
@@ -302,9 +303,9 @@ def _main(argv: list[str] | None) -> int:
             code = int(args.func(args) or 0)
             sys.stdout.flush()  # a closed pipe or a full disk shows here, inside the handler, not at interpreter exit
         return _maps_not_written(prog, show.maps_not_written) if code == 0 and show.maps_not_written else code
-    except Terminated:
+    except Terminated as stop:
         print(f"{prog}: terminated", file=sys.stderr)
-        return 143
+        return stop.status  # 143; 129 for guide's SIGHUP (cli.hangup) taken as it closed its speaker
     except (InputError, CliError) as error:
         print(f"{prog}: error: {' '.join(str(error).split())}", file=sys.stderr)
         return 2

@@ -308,6 +308,8 @@ class Terminated(BaseException):  # not an Exception: no broad handler on the wa
     """SIGTERM arrived (``kill``, a service manager's stop), raised in the main thread by
     :func:`terminated_on_sigterm`."""
 
+    status = 143  # the exit status (128 + SIGTERM); a subclass for another signal has its own
+
 
 @contextlib.contextmanager
 def terminated_on_sigterm():

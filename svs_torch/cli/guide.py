@@ -12,8 +12,9 @@ from ..core.files import PROGRESS_HELP
 from .common import (Terminated, add_retries_option, finite_float, non_negative_float,
                      pair_count_or_zero, positive_float, positive_int, quality_digit, terminated_on_sigterm,
                      timeout_seconds)
+from .hangup import HungUp, hung_up_on_sighup
 from .link_options import add_emulator_frame_options, baud_rate, emulator_record
-from .rig import add_calibration_option, calibration_from_args, with_calibrated_rectification
+from .rig import add_calibration_option, calibration_from_args
 from .segment import add_floor_option
 
 HELP = "live obstacle warnings from an SVS (or the built-in emulator)"
@@ -43,10 +44,11 @@ pairs (or a late one's, apart), "Cannot see ahead" goes on "Check the left camer
 --blind-s 0, said alone), once a run. A camera that stops answering in the middle of a walk (a WiFi drop) is said to
 be lost, aloud (the board named where one failed), and opened again every --reconnect-s seconds; its return is said
 too, and the warnings go on. One that never answered ends guide with its error (exit 1), as does one lost for
---give-up-s seconds if that is set. Whatever ends it (an error, --count, Ctrl-C, a service's stop), "Guide stopped.
-No more warnings." is said. Boards that answer in the wrong stereo roles (--left reaches the slave: the URLs
-swapped) are said once, aloud ("Check the cameras"), as every distance is then wrong. SIGTERM (a service's stop)
-ends it as Ctrl-C does, exit 143.
+--give-up-s seconds if that is set. Whatever ends it (an error, --count, Ctrl-C, a service's stop, its terminal
+closing), "Guide stopped. No more warnings." is said. Boards that answer in the wrong stereo roles (--left reaches
+the slave: the URLs swapped) are said once, aloud ("Check the cameras"), as every distance is then wrong. SIGTERM
+(a service's stop) ends it as Ctrl-C does, exit 143; so does the end of its terminal (SIGHUP: an ssh session
+dropped, the window closed), exit 129, the words still said (the speaker needs no terminal; under nohup it goes on).
 
 --json prints a JSON line per pair ranged, for another program to act on; --record DIR keeps the pairs
 ranged, and at the end prints the estimate command that ranges them again to the same distances, pair by pair
@@ -227,9 +229,10 @@ def _metres_or_off(text: str) -> float:
 
 
 #: Said when guide ends, whatever ends it: an error (a camera that never answered, one lost for --give-up-s), whose
-#: line is on a screen the walker does not see, --count, Ctrl-C or a service's stop, while it starts too. The silence
-#: after it read as a clear way (after "Camera lost. No warnings until it is back.", a promise of more). Here, not in
-#: guide_loop (which re-exports it): said when Ctrl-C comes while that module's imports (torch) are under way.
+#: line is on a screen the walker does not see, --count, Ctrl-C, a service's stop or the terminal's end (SIGHUP),
+#: while it starts too. The silence after it read as a clear way (after "Camera lost. No warnings until it is
+#: back.", a promise of more). Here, not in guide_loop (which re-exports it): said when Ctrl-C comes while that
+#: module's imports (torch) are under way.
 GUIDE_STOPPED = "Guide stopped. No more warnings."
 
 
@@ -252,14 +255,15 @@ def run(args: argparse.Namespace) -> int:
     words = status_line.lines_above(sys.stderr if args.json else sys.stdout)
     rate = SPEECH_WPM if args.words_per_minute is None else args.words_per_minute
     guide = LiveGuide(policy, Speaker(None if args.no_speech else "auto", words_per_minute=rate, stream=words))
-    with contextlib.closing(guide.speaker):
+    # SIGHUP (the terminal closed) as SIGTERM, from here: the speaker is there to say the end
+    with hung_up_on_sighup(), contextlib.closing(guide.speaker):
         try:
             session, log = _started(args, size, guide, status_line, record_dir)
         except (KeyboardInterrupt, Terminated) as stop:
             # Ctrl-C or a service's stop in the 1-3 s before the camera opens (torch's import, the warm-up): it
             # ended in "svs-depth guide: interrupted" with nothing said, though every other end says it (an audit).
             return _stopped(status_line, None, "guide stopped while starting, before the camera opened",
-                            130 if isinstance(stop, KeyboardInterrupt) else 143, guide.speaker)
+                            130 if isinstance(stop, KeyboardInterrupt) else stop.status, guide.speaker)
         return _walk(args, session, log, status_line, guide.speaker)
 
 
@@ -271,9 +275,9 @@ def _started(args: argparse.Namespace, size: tuple[int, int], guide, status_line
     with imports_without_collection():
         from .guide_log import GuideLog
         from .guide_loop import GuideSession
-        from .guide_warm_up import import_deferred_modules, warm_up
+        from .guide_warm_up import import_deferred_modules, pair_ranger, warm_up
 
-        ranged = _pair_ranger(args, size)  # it imports torch and the pipeline: here, with the other imports
+        ranged = pair_ranger(args, size)  # it imports torch and the pipeline: here, with the other imports
         import_deferred_modules()
     # Before the camera opens: the first frames' warnings then come as fast as the later ones (guide_warm_up).
     warm_up(ranged, size)
@@ -284,6 +288,16 @@ def _started(args: argparse.Namespace, size: tuple[int, int], guide, status_line
 
 def _walk(args: argparse.Namespace, session, log, status_line, speaker) -> int:
     """Run ``session`` until it ends; the exit status, once :data:`GUIDE_STOPPED` is said (:func:`_stopped`)."""
+    try:
+        return _walked(args, session, log, status_line, speaker)
+    except HungUp as stop:
+        # The terminal closed, its SIGHUP taken while an end already under way was said: a write to the terminal
+        # failed (EIO) just before, ending the walk as an error, and the SIGHUP cut that end short
+        return _stopped(status_line, log, session.stopped_text(), stop.status, speaker)
+
+
+def _walked(args: argparse.Namespace, session, log, status_line, speaker) -> int:
+    """:func:`_walk`, but for a SIGHUP taken while one of its ends is said."""
     from ..capture.link_types import CaptureError
 
     try:
@@ -294,8 +308,8 @@ def _walk(args: argparse.Namespace, session, log, status_line, speaker) -> int:
             stack.enter_context(terminated_on_sigterm())  # main's too: here the summary is said first
             session.run()
         return _stopped(status_line, log, session.stopped_text(), 0, speaker)  # (before the speaker closes)
-    except Terminated:  # a service stopped (systemctl stop): the summary and the replay command, exit 143
-        return _stopped(status_line, log, session.stopped_text(), 143, speaker)
+    except Terminated as stop:  # a service stopped (systemctl stop), or the terminal closed: exit 143, 129
+        return _stopped(status_line, log, session.stopped_text(), stop.status, speaker)
     except KeyboardInterrupt:
         return _stopped(status_line, log, session.stopped_text(), 130, speaker)
     except BrokenPipeError:  # --json's reader went away (| head -1): exit 141, as every command does
@@ -304,31 +318,6 @@ def _walk(args: argparse.Namespace, session, log, status_line, speaker) -> int:
         raise
     except (CaptureError, OSError) as error:
         return _stopped(status_line, log, f"svs-depth guide: error: {' '.join(str(error).split())}", 1, speaker)
-
-
-def _pair_ranger(args: argparse.Namespace, size: tuple[int, int]):
-    """The whole pipeline as guide runs it on one grabbed pair (a :class:`~svs_torch.core.types.StereoBatch` of
-    one): rectified with ``--calibration`` (checked against ``size`` before the camera opens) if given, the
-    walker's segmentation (``--floor``) and ``--second-passes``
-    (:meth:`~svs_torch.pipeline.PipelineConfig.for_guide`), no gradients."""
-    import torch
-
-    from ..pipeline import PipelineConfig, estimate_obstacle_depth
-
-    calibration = calibration_from_args(args)
-    if calibration is not None:
-        from ..geometry.calibration import rectify_with_calibration
-
-        calibration.scaled_to(size, "--calibration")  # a rig of another aspect ratio fails before the camera opens
-    config = with_calibrated_rectification(PipelineConfig(), args).for_guide(args.floor == "on",
-                                                                               args.second_passes == "on")
-
-    def ranged(batch):
-        with torch.inference_mode():  # read, never trained on: no copy of the result (core.inference)
-            return estimate_obstacle_depth(batch if calibration is None
-                                           else rectify_with_calibration(batch, calibration), config)
-
-    return ranged
 
 
 def _add_walker_options(parser: argparse.ArgumentParser) -> None:

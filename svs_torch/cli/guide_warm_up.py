@@ -1,5 +1,5 @@
 """``svs-depth guide``'s warm-up: a pair ranged before the first frame, so that the walker's first warnings do not
-wait for what a process does only once.
+wait for what a process does only once; and the ranger it warms up (:func:`pair_ranger`).
 
 What a process does once: load the C kernels, make torch's first calls, and import the modules the pipeline imports
 only when a pair first needs them. The largest of these is kornia (0.24–0.29 s on this machine), which the noisy
@@ -13,6 +13,7 @@ took the noisy retry 572 ms against 200 ms.
 
 from __future__ import annotations
 
+import argparse
 import importlib
 import time
 import warnings
@@ -22,8 +23,9 @@ import torch
 
 from ..core.camera import SVS_CAMERA, SVSCamera
 from ..core.types import StereoBatch
+from .rig import calibration_from_args, with_calibrated_rectification
 
-__all__ = ["import_deferred_modules", "warm_up"]
+__all__ = ["import_deferred_modules", "pair_ranger", "warm_up"]
 
 #: The board's default JPEG quality digit and a camera's sensor noise (8-bit levels) of the warm-up pair: a
 #: camera's frame, so that the pair takes the paths a camera's frames take.
@@ -65,3 +67,26 @@ def warm_up(ranged: Callable[[StereoBatch], object], size_wh: tuple[int, int], c
         warnings.simplefilter("ignore")
         ranged(batch)
     return time.perf_counter() - started
+
+
+def pair_ranger(args: argparse.Namespace, size: tuple[int, int]):
+    """The whole pipeline as guide runs it on one grabbed pair (a :class:`~svs_torch.core.types.StereoBatch` of
+    one): rectified with ``--calibration`` (checked against ``size`` before the camera opens) if given, the
+    walker's segmentation (``--floor``) and ``--second-passes``
+    (:meth:`~svs_torch.pipeline.PipelineConfig.for_guide`), no gradients."""
+    from ..pipeline import PipelineConfig, estimate_obstacle_depth
+
+    calibration = calibration_from_args(args)
+    if calibration is not None:
+        from ..geometry.calibration import rectify_with_calibration
+
+        calibration.scaled_to(size, "--calibration")  # a rig of another aspect ratio fails before the camera opens
+    config = with_calibrated_rectification(PipelineConfig(), args).for_guide(args.floor == "on",
+                                                                               args.second_passes == "on")
+
+    def ranged(batch):
+        with torch.inference_mode():  # read, never trained on: no copy of the result (core.inference)
+            return estimate_obstacle_depth(batch if calibration is None
+                                           else rectify_with_calibration(batch, calibration), config)
+
+    return ranged

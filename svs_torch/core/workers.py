@@ -131,7 +131,7 @@ def signal_handler(signum: int, handler) -> Iterator[object]:
 
 @contextlib.contextmanager
 def signals_held(*signums: int) -> Iterator[None]:
-    """Hold ``signums`` (default: Ctrl-C's SIGINT and SIGTERM) back in the block, then deliver them as their
+    """Hold ``signums`` (default: Ctrl-C's SIGINT, SIGTERM and SIGHUP) back in the block, then deliver them as their
     handlers would, even when the block raised: for a step that must not be cut in two, such as a command's imports
     (:func:`imports_without_collection`) or writing a pair's images and then listing them (an audit of the device
     side: a SIGTERM between the two left a recorded pair's images unlisted in ``index.jsonl``, 1 run in 4). A
@@ -147,7 +147,10 @@ def signals_held(*signums: int) -> Iterator[None]:
 
     try:
         with contextlib.ExitStack() as stack:
-            for signum in signums or (signal.SIGINT, signal.SIGTERM):
+            # SIGHUP too where there is one: guide ends on it as on SIGTERM (cli.hangup), and capture, which dies
+            # of it, then dies after the pair is whole, not between its images and its index line
+            held = (signal.SIGINT, signal.SIGTERM) + ((signal.SIGHUP,) if hasattr(signal, "SIGHUP") else ())
+            for signum in signums or held:
                 previous[signum] = stack.enter_context(signal_handler(signum, note))
             yield
     finally:

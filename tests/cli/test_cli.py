@@ -898,7 +898,7 @@ def test_guide_says_once_that_it_is_ready_when_the_camera_first_answers(capsys):
     assert code == 0 and out.splitlines()[0] == GUIDE_READY and out.count(GUIDE_READY) == 1 and "bstacle" in out
 
 
-@pytest.mark.parametrize("stop, code", [(KeyboardInterrupt, 130), ("terminated", 143)])
+@pytest.mark.parametrize("stop, code", [(KeyboardInterrupt, 130), ("terminated", 143), ("hung up", 129)])
 def test_guide_says_that_it_stopped_whatever_stops_it(capsys, monkeypatch, stop, code):
     """Was: "Guide stopped. No more warnings." was said only when guide ended on an error; ended by Ctrl-C, by a
     service's stop (SIGTERM: a battery running low, a system update) or by --count, it fell silent, and a walker who
@@ -906,13 +906,14 @@ def test_guide_says_that_it_stopped_whatever_stops_it(capsys, monkeypatch, stop,
     it, after the warnings (--count's: the test above)."""
     from svs_torch.cli import guide_loop
     from svs_torch.cli.common import Terminated
+    from svs_torch.cli.hangup import HungUp
 
     real = guide_loop.GuideSession._range
     ranged = []
 
     def range_then_stop(session, item):
         if ranged:  # the second pair: stopped as it comes
-            raise KeyboardInterrupt if stop is KeyboardInterrupt else Terminated()
+            raise {"terminated": Terminated, "hung up": HungUp}.get(stop, stop)()
         ranged.append(real(session, item))
 
     monkeypatch.setattr(guide_loop.GuideSession, "_range", range_then_stop)
@@ -947,16 +948,17 @@ def test_guide_says_that_it_stopped_when_its_terminal_fails_first():
     assert said == [GUIDE_STOPPED]
 
 
-@pytest.mark.parametrize("stop, code", [(KeyboardInterrupt, 130), ("terminated", 143)])
+@pytest.mark.parametrize("stop, code", [(KeyboardInterrupt, 130), ("terminated", 143), ("hung up", 129)])
 def test_guide_stopped_while_it_starts_says_that_it_stopped(capsys, monkeypatch, tmp_path, stop, code):
     """Found by an audit of Ctrl-C: stopped in the 1-3 s before the camera opens (torch's import, the warm-up),
     guide ended in "svs-depth guide: interrupted" with nothing said, though every other end says "Guide stopped"."""
     from svs_torch.cli import guide_warm_up
     from svs_torch.cli.common import Terminated
     from svs_torch.cli.guide import GUIDE_STOPPED
+    from svs_torch.cli.hangup import HungUp
 
     def stopped(*_):
-        raise KeyboardInterrupt if stop is KeyboardInterrupt else Terminated()
+        raise {"terminated": Terminated, "hung up": HungUp}.get(stop, stop)()
 
     monkeypatch.setattr(guide_warm_up, "warm_up", stopped)
     record = tmp_path / "walk"

@@ -1,7 +1,8 @@
-"""Interrupts of the command line (Ctrl-C, SIGTERM) at the moments an audit of interrupts found wanting."""
+"""Interrupts of the command line (Ctrl-C, SIGTERM, SIGHUP) at the moments an audit of interrupts found wanting."""
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -396,3 +397,104 @@ def test_eval_interrupted_ends_with_the_summary_of_the_pairs_done(data_dir, tmp_
         said = [line for line in out.splitlines() if line.startswith("interrupted: the summary of the ")]
         assert len(said) == 1 and said[0].endswith(f" of {listed} pairs evaluated"), out
         assert "mean Acc (Eq. 9)" in out.split(said[0])[1]
+
+
+#: Run as a fake ``espeak-ng``: each text it is given to say appended as a line to the file $SPOKEN.
+_FAKE_ESPEAK = '#!/bin/sh\nfor text; do :; done\nprintf "%s\\n" "$text" >> "$SPOKEN"\n'
+#: Starts argv[2:] with the pseudo-terminal argv[1] as its controlling terminal, stdin and stdout (a session leader
+#: that opens a terminal takes it), as a shell in a terminal window or an ssh session starts guide.
+_ON_TERMINAL = ("import os, sys\nos.setsid()\nfd = os.open(sys.argv[1], os.O_RDWR)\nos.dup2(fd, 0)\nos.dup2(fd, 1)\n"
+                "os.execv(sys.executable, [sys.executable, *sys.argv[2:]])\n")
+
+
+@pytest.mark.skipif(os.name != "posix", reason="POSIX signals and terminals")
+@pytest.mark.parametrize("stderr_on_terminal", [True, False])
+def test_guide_whose_terminal_closes_says_it_stopped(tmp_path, stderr_on_terminal):
+    """Found by an audit: closing the terminal guide ran in (SIGHUP: an ssh session that dropped, a terminal window
+    closed) killed it at once, in silence, and the walker heard no "Guide stopped." (the silence reads as a clear
+    way). Now it ends as on SIGTERM: the words said (the speaker needs no terminal), the record's index closed whole,
+    exit 129; its writes to the dead terminal (EIO) stop neither, and its stderr, where a file, still says the end."""
+    import pty
+    import select
+    import time
+
+    fake = tmp_path / "bin" / "espeak-ng"
+    fake.parent.mkdir()
+    fake.write_text(_FAKE_ESPEAK)
+    fake.chmod(0o755)
+    spoken, record, err = tmp_path / "spoken.txt", tmp_path / "walk", tmp_path / "err.txt"
+    env = dict(os.environ, PYTHONPATH=str(ROOT), PATH=f"{fake.parent}{os.pathsep}{os.environ['PATH']}",
+               SPOKEN=str(spoken))
+    master, slave = pty.openpty()
+    argv = ["-m", "svs_torch.cli", "guide", "--emulator", "--size", "160x120", "--record", str(record)]
+    with open(err, "w") as err_file:
+        process = subprocess.Popen([sys.executable, "-c", _ON_TERMINAL, os.ttyname(slave), *argv], env=env,
+                                   stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                   stderr=slave if stderr_on_terminal else err_file)
+    try:  # (the slave kept open here until the end: before guide's opens it, reading the master fails, EIO)
+        deadline = time.monotonic() + 120
+        while not ((record / "index.jsonl").is_file() and (record / "index.jsonl").stat().st_size):
+            assert time.monotonic() < deadline and process.poll() is None, err.read_text()
+            if select.select([master], [], [], 0.2)[0]:
+                os.read(master, 65536)  # (drained: a terminal's full buffer would hold guide's writes up)
+        os.close(master)  # the terminal closes: its session's leader, guide, is sent SIGHUP
+        status = process.wait(60)
+    finally:
+        os.close(slave)
+        if process.poll() is None:
+            process.kill()
+            process.wait()
+    assert status == 129, (status, err.read_text())
+    assert spoken.read_text().splitlines()[-1] == "Guide stopped. No more warnings."
+    index = (record / "index.jsonl").read_text()
+    assert index.endswith("\n") and len(list(record.glob("pair*.jpg"))) == 2 * index.count("\n")
+    if not stderr_on_terminal:
+        said = err.read_text()
+        assert "guide stopped after" in said and "svs-depth estimate --pairs" in said and "Traceback" not in said
+
+
+@pytest.mark.skipif(os.name != "posix", reason="POSIX signals")
+def test_guide_under_nohup_outlives_its_terminal():
+    """A guide started with SIGHUP ignored (``nohup``) was asked to outlive its terminal: the end of the terminal
+    ends it no more than before (cli.hangup takes SIGHUP only where it was the default)."""
+    from svs_torch.cli.hangup import hung_up_on_sighup
+
+    before = signal.signal(signal.SIGHUP, signal.SIG_IGN)
+    try:
+        with hung_up_on_sighup():
+            assert signal.getsignal(signal.SIGHUP) == signal.SIG_IGN
+        signal.signal(signal.SIGHUP, signal.SIG_DFL)
+        with hung_up_on_sighup():
+            assert callable(signal.getsignal(signal.SIGHUP))
+        assert signal.getsignal(signal.SIGHUP) == signal.SIG_DFL
+    finally:
+        signal.signal(signal.SIGHUP, before)
+
+
+@pytest.mark.skipif(os.name != "posix", reason="POSIX signals")
+def test_guide_record_hung_up_while_a_pair_is_saved_keeps_it_listed(tmp_path, monkeypatch, capsys):
+    """guide now stops on SIGHUP (above); one taken between a recorded pair's images and its index line would have
+    left the images unlisted, as SIGTERM once did (tests/capture's test_a_signal_while_a_pair_is_saved...): it is held
+    until the line is written, as SIGTERM is. The SIGHUP comes, deterministically, as the second pair is saved."""
+    from svs_torch.cli import guide_log, main
+    from svs_torch.cli.hangup import hung_up_on_sighup  # (first: without it the SIGHUP would end pytest)
+
+    assert hung_up_on_sighup and signal.getsignal(signal.SIGHUP) == signal.SIG_DFL
+    save, saved = guide_log.save_pair, []
+
+    def saved_then_hung_up(out, pair, option="--out-dir"):
+        record = save(out, pair, option)
+        saved.append(record["index"])
+        if len(saved) == 2:  # (the pairs' numbers: guide skips the pairs that came while it ranged)
+            os.kill(os.getpid(), signal.SIGHUP)
+        return record
+
+    monkeypatch.setattr(guide_log, "save_pair", saved_then_hung_up)
+    out = tmp_path / "rec"
+    argv = ["guide", "--emulator", "--no-speech", "--count", "4", "--size", "160x120", "--record", str(out)]
+    assert main(argv) == 129
+    listed = [json.loads(line) for line in (out / "index.jsonl").read_text().splitlines()]
+    assert [line["index"] for line in listed] == saved
+    assert sorted(p.name for p in out.glob("pair*.jpg")) == sorted(line[view] for line in listed
+                                                                   for view in ("left", "right"))
+    assert "recorded 2 pairs" in capsys.readouterr().err
