@@ -29,14 +29,14 @@ MAX_PERIOD_PX = DepthConfig.alias_check_max_period_px
 #: How far the correlation must rise again from its least value at a shorter lag to count as a period's peak: a
 #: grate's horizontal bars keep it above 0 at every lag (0.1 between its peaks of 0.99).
 MIN_RISE = 0.4
-#: Fewest pixel pairs at a period's lag for its peak to count. A small region of a blank, noisy view (a covered
-#: lens, a grey wall as the board's camera frames) has a few dozen pairs at a lag, over which its noise correlates to
-#: 0.5-1.0 by chance: guide said "Repeated pattern ahead" there, and never "Cannot see ahead" (an audit;
-#: experiments/blank_views.md, where twice this costs rendered panels their alias check).
-MIN_PERIOD_PAIRS = 64
-#: Least spread (standard deviation) of the image over the region, in its [0, 1] levels, for a pattern to be
-#: looked for: 4 of 255. JPEG smooths a blank view's noise into blocks that can correlate over more pairs than the
-#: floor above; it keeps them under this spread, which costs no rendered panel its alias check (the same experiment).
+#: Fewest pixel pairs at a period's lag for its peak to count; 0, off. At 64 it cleared blank noisy views as the spread
+#: floor below does, and cost rendered panels (seed 9, a loose rig's camera frames) one grate told a wrong distance
+#: in place of one left unranged (experiments/blank_views.md).
+MIN_PERIOD_PAIRS = 0
+#: Least spread (standard deviation) of the image over the region, in its [0, 1] levels, for a pattern to be looked
+#: for: 4 of 255. A small region of a blank, noisy view (a covered lens, a grey wall as the board's camera frames)
+#: correlates to 0.5-1.0 by chance over its few pixel pairs: guide said "Repeated pattern ahead" there, and never
+#: "Cannot see ahead" (an audit). Its noise spreads less than this; no rendered panel does (the same experiment).
 MIN_PATTERN_SPREAD = 4 / 255
 
 
