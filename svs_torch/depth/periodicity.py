@@ -49,17 +49,17 @@ def row_autocorrelation(image: torch.Tensor, mask: torch.Tensor, max_lag_px: int
     themselves, their squares with the mask both ways (each lag's norm over its own pairs) and the mask with
     itself (the pairs' count). Shifted products of the whole image, lag by lag, took 14 ms a 320 × 240 pair; this
     takes about 1.5."""
-    check_image(image, "image")
-    check_shape(mask, "mask", list(image.shape))
-    check_dtype(mask, "mask", "bool")
-    check_count(max_lag_px, "max_lag_px", 1)
     return _row_statistics(image, mask, max_lag_px)[0]
 
 
 def _row_statistics(image: torch.Tensor, mask: torch.Tensor, max_lag_px: int
                     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """:func:`row_autocorrelation` unchecked, with the pixel pairs at each lag ``(B, max_lag_px)`` and the image's
-    standard deviation over the mask ``(B,)`` (0 where the mask is empty)."""
+    """:func:`row_autocorrelation`, with the pixel pairs at each lag ``(B, max_lag_px)`` and the image's standard
+    deviation over the mask ``(B,)`` (0 where the mask is empty); the arguments checked here, for both callers."""
+    check_image(image, "image")
+    check_shape(mask, "mask", list(image.shape))
+    check_dtype(mask, "mask", "bool")
+    check_count(max_lag_px, "max_lag_px", 1)
     # In float32 (a fifth of float64's time; the correlations within 1e-5 of numpy's float64), each row's spectrum
     # taken once.
     x, inside = image.detach().to(torch.float32), mask.to(torch.float32)
@@ -93,10 +93,6 @@ def period_along_rows(image: torch.Tensor, mask: torch.Tensor, min_peak: float, 
     :data:`MIN_PERIOD_PAIRS` pixel pairs or more; 0 where it does not repeat, or where the image spreads less than
     :data:`MIN_PATTERN_SPREAD` over the mask (a blank view's noise). Not differentiable."""
     check_real(min_peak, "min_peak", 0.0, 1.0)
-    check_image(image, "image")
-    check_shape(mask, "mask", list(image.shape))
-    check_dtype(mask, "mask", "bool")
-    check_count(max_lag_px, "max_lag_px", 1)
     r, pairs, spread = _row_statistics(image, mask, max_lag_px)
     if r.shape[1] < 4:
         return torch.zeros(r.shape[0], dtype=torch.int64, device=r.device)
