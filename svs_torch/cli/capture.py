@@ -12,8 +12,7 @@ Output, in ``--out-dir`` (alias ``--out``):
   without it: the board's own setting, 4 at power-up, which no command reads back) and ``frozen_camera``
   (``"left"``/``"right"``: that camera's frame came again, pixel for pixel, while the other's changed; ``"both"``:
   both frames came again for 3 s; by ``guide``'s rule, :class:`~svs_torch.capture.frozen.FrozenCameraWatch`; else
-  null; an older index has no such
-  key) and ``emulator`` (``--emulator``'s noise, loose rig, floor and heap,
+  null; an older index has no such key), ``emulator`` (``--emulator``'s noise, loose rig, floor and heap,
   :func:`~svs_torch.cli.link_options.emulator_record`; null from boards; an older index has no such key) and
   ``rig_calibration`` (``"calibration.json"`` with ``--calibration``, else null);
 * ``calibration.json`` with ``--calibration``: a copy of the rig's calibration file (the frames stay as received;

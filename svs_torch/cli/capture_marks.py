@@ -45,7 +45,7 @@ def capture_warning(fields: dict) -> str | None:
     if fields.get("frames_apart_s") is not None:
         said.append(f"its frames came {fields['frames_apart_s']:.2f} s apart (time_between_frames_s in the index)")
     # (both boards stalled send one stereo moment, but an old one)
-    moment = "not the moment grabbed" if said == said[:1] and fields.get("frozen_camera") == "both" else \
+    moment = "not the moment grabbed" if len(said) == 1 and fields.get("frozen_camera") == "both" else \
         "not one stereo moment"
     return f"warning: {'; '.join(said)}: {moment}" if said else None
 
