@@ -42,6 +42,7 @@ import re
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
+from typing import Iterator
 
 import numpy as np
 import torch
@@ -216,11 +217,11 @@ class DisparityExport:
                     # The time file first, the map last: a map is never left without the time file the SDK
                     # reads beside it (a full disk once refused the time file after the map, and the error
                     # named the map, which was there).
-                    target.parent.mkdir(exist_ok=True)
                     failing = timing
-                    write_bytes_atomic(timing, f"{time_s:.6f}\n".encode("ascii"))
-                    failing = target
-                    _write_map_beside(timing, target, np.where(valid, disparity, np.float32(np.inf)))
+                    with _scene_folder(target.parent):
+                        write_bytes_atomic(timing, f"{time_s:.6f}\n".encode("ascii"))
+                        failing = target
+                        _write_map_beside(timing, target, np.where(valid, disparity, np.float32(np.inf)))
             except OSError as error:  # a full disk, EPERM: the run stops (exit 1), the option and the file named
                 raise write_failure(f"--disparity-out: cannot write {failing}", error) from None
             written.append(target)
@@ -252,6 +253,22 @@ class DisparityExport:
         warnings.warn(f"--disparity-out: {pair_name!r} not run ({status}): the map an earlier run left, {target}, "
                       "removed", RuntimeWarning, stacklevel=2)
         return target
+
+
+@contextlib.contextmanager
+def _scene_folder(folder: Path) -> Iterator[None]:
+    """Make a pair's Middlebury folder for the body's files, and remove it again if the body fails and leaves it
+    empty: a full disk (or Ctrl-C) once left an empty scene folder under ``--disparity-out``, a scene the SDK lists
+    with no map (the last stop's note)."""
+    made = not folder.is_dir()
+    folder.mkdir(exist_ok=True)
+    try:
+        yield
+    except BaseException:
+        if made:
+            with contextlib.suppress(OSError):  # not empty (another process's file), or gone: left as it is
+                folder.rmdir()
+        raise
 
 
 def _write_map_beside(timing: Path, target: Path, disparity: np.ndarray) -> None:

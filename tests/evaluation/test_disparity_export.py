@@ -246,7 +246,8 @@ def test_estimate_pairs_keeps_the_first_of_two_listed_files_of_one_name(data_dir
 def test_a_full_disk_names_the_file_it_refused_and_leaves_no_map_without_its_time(data_dir, tmp_path, monkeypatch):
     """Was (an audit of full disks): the map was written before its time file, and a disk that refused the time
     file gave 'cannot write .../disp0SVSTorch.pfm' while that map was there, complete, without the time file the
-    SDK reads beside it. Now the time file comes first and the error names the file refused."""
+    SDK reads beside it. Now the time file comes first and the error names the file refused; and the scene's folder,
+    made for the two files, is not left behind empty (it was, a scene the SDK lists with no map)."""
     import svs_torch.evaluation.export as export_module
 
     batch = load_stereo_pair(data_dir / "middlebury_eval3_Q" / "Teddy")
@@ -261,7 +262,7 @@ def test_a_full_disk_names_the_file_it_refused_and_leaves_no_map_without_its_tim
     export.prepare()
     with pytest.raises(OSError, match=r"--disparity-out: cannot write .*timeSVSTorch\.txt: No space left on device"):
         export.write(batch, result, 0.25)
-    assert list((tmp_path / "m" / "Teddy").iterdir()) == []
+    assert list((tmp_path / "m").iterdir()) == []
 
 
 def test_a_map_refused_for_permission_is_the_runs_failure_not_a_usage_error(data_dir, tmp_path, monkeypatch, capsys):
