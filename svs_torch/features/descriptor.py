@@ -110,8 +110,11 @@ def _gaussian(size: int, sigma: float, dtype, device) -> torch.Tensor:
     return g[:, None] * g[None, :]
 
 
-def _descriptor_from_patch(patch: torch.Tensor, valid: torch.Tensor, extended: bool) -> torch.Tensor:
-    """``(B, K, 21, 21)`` cell means → ``(B, K, D)`` unit descriptors (zero where not ``valid``)."""
+def _descriptor_from_patch(patch: torch.Tensor, valid: torch.Tensor, extended: bool,
+                           flat: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
+    """``(B, K, 21, 21)`` cell means → ``(B, K, D)`` unit descriptors (zero where not ``valid``). ``flat``: the
+    upright lattice's :func:`_within_one_pixel` ``(B, K, 20)`` along x and along y, where the extended descriptor
+    takes the response as 0 (not negative) whatever its round-off."""
     b, k = valid.shape
     # 2 × 2-cell Haar wavelets (size 2s) centred between cells, OpenCV's layout.
     dx = (patch[..., :-1, 1:] - patch[..., :-1, :-1] + patch[..., 1:, 1:] - patch[..., 1:, :-1]) / 2
@@ -125,6 +128,8 @@ def _descriptor_from_patch(patch: torch.Tensor, valid: torch.Tensor, extended: b
 
     if extended:
         neg_dy, neg_dx = dy < 0, dx < 0
+        if flat is not None:
+            neg_dy, neg_dx = neg_dy & ~flat[1].unsqueeze(-1), neg_dx & ~flat[0].unsqueeze(-2)
         parts = [dx * neg_dy, dx.abs() * neg_dy, dx * ~neg_dy, dx.abs() * ~neg_dy,
                  dy * neg_dx, dy.abs() * neg_dx, dy * ~neg_dx, dy.abs() * ~neg_dx]
     else:
@@ -188,10 +193,29 @@ def _describe_upright(image: torch.Tensor, keypoints: Keypoints, extended: bool,
     edges = torch.arange(_PATCH + 2, dtype=dtype, device=image.device) - (_PATCH + 1) / 2  # −10.5 … 10.5
     patch = sample_cell_means(integral, image_index, xy[:, 0:1] + scale * edges, xy[:, 1:2] + scale * edges)
     everywhere = torch.ones_like(row, dtype=torch.bool)[None]
-    flat = maybe_compiled(_descriptor_from_patch, compiled)(patch.unsqueeze(0), everywhere, extended)[0]
+    steady = None
+    if extended:  # the lattice's edges again in double, as the kernel's, for which responses are 0 by definition
+        where = keypoints.xy.detach()[image_index, row].double()
+        steps = keypoints.scale.detach()[image_index, row].double().clamp(min=1e-3).unsqueeze(-1) * edges.double()
+        steady = tuple(_within_one_pixel(where[:, axis:axis + 1] + steps, image.shape[-1 - axis])[None]
+                       for axis in (0, 1))
+    flat = maybe_compiled(_descriptor_from_patch, compiled)(patch.unsqueeze(0), everywhere, extended, steady)[0]
     out = flat.new_zeros(b, k, flat.shape[-1])
     out[image_index, row] = flat
     return out.to(image.dtype)
+
+
+def _within_one_pixel(edges: torch.Tensor, size: int) -> torch.Tensor:
+    """``(P, 22)`` cell edges along one axis of an image ``size`` pixels long (pixel-centre coordinates, float64)
+    → ``(P, 20)``: whether the two cells of each Haar response across that axis, ``[e_i, e_{i+2}]``, lie within one
+    pixel (the replicate border beyond the image is its edge pixel repeated: every cell there reads it). Their
+    means are then equal, so the response is 0 by definition, and round-off alone gave it a sign: the extended
+    descriptor put the other response into one half or the other by that noise, differently in the C kernel (in
+    double) and the torch path (up to 0.05 apart on keypoints near the border). The same test, in double, in
+    ``usurf_describe.c``."""
+    first = torch.clamp(torch.floor(edges[:, :-2] - 0.5) + 1, min=0)  # the first pixel boundary k + 0.5 after e_i
+    last = torch.clamp(torch.ceil(edges[:, 2:] - 0.5) - 1, max=size - 2)  # the last one before e_{i+2}
+    return first > last
 
 
 def _take_rows(keypoints: Keypoints, count: int) -> Keypoints:

@@ -549,9 +549,10 @@ def test_usurf_kernel_agrees_with_the_torch_descriptor(images, monkeypatch):
     """The C descriptor does the torch path's arithmetic in double: on real images (keypoints near the border
     included) its 64-long descriptors equal the float64 torch path's to 1e-6 and the float32 one's to that
     path's own round-off (median 1e-5, at most 5e-4). The 128-long ones split each sum by the sign of the
-    other response, so a response near zero may land in the other half (float32 against float64 alike): the
-    median still agrees to 1e-6. Padding rows are zero, and with gradients the torch path runs (the kernel has
-    none)."""
+    other response, so against the float32 path a response near zero may land in the other half; against the
+    float64 one they agree to 1e-6 too, since a response 0 by definition (its cells in the replicate border) counts
+    as not negative in both (before, its round-off sign split 99 of these 625 keypoints' sums differently, by up to
+    0.015). Padding rows are zero, and with gradients the torch path runs (the kernel has none)."""
     import dataclasses
 
     from svs_torch.features.descriptor import describe_surf
@@ -568,7 +569,7 @@ def test_usurf_kernel_agrees_with_the_torch_descriptor(images, monkeypatch):
             reference = describe_surf(images.double(), keypoints, extended)
             single = describe_surf(images, keypoints, extended)
         error = (fused.double() - reference).abs().amax(-1)[keypoints.valid]
-        assert float(error.median()) < 1e-6 and (extended or float(error.max()) < 1e-6)
+        assert float(error.median()) < 1e-6 and float(error.max()) < 1e-6
         if not extended:
             error = (fused - single).abs().amax(-1)[keypoints.valid]
             assert float(error.median()) < 5e-5 and float(error.max()) < 5e-4

@@ -240,6 +240,30 @@ def test_orientation_turns_with_the_image_and_descriptors_follow():
                                describe_surf(rotated, with_orientation(kp_rot, theta_rot)), atol=1e-6, rtol=0)
 
 
+def test_extended_descriptor_puts_responses_zero_by_definition_in_the_not_negative_half(monkeypatch):
+    """In the replicate border every cell reads the edge pixel, so a Haar response across the border is 0 and the
+    extended descriptor puts the other response's sums into its "not negative" half: above and below the image no
+    Σdx where dy < 0, left of it no Σdy where dx < 0. Round-off gave those zeros a sign, and the C kernel (double)
+    and the torch path split the sums differently: 0.024 apart on this keypoint, which the kernel fuzz drew at
+    ``SVS_FUZZ_SCALE=3`` (an 8 x 18 image, a keypoint 0.001 px from its left edge)."""
+    from svs_torch.core import kernels
+
+    y, x = torch.meshgrid(torch.arange(8.0), torch.arange(18.0), indexing="ij")
+    image = (0.5 + 0.4 * torch.sin(x / 3 + 4.2469) * torch.cos(y / 4 - 4.2469)).view(1, 1, 8, 18)
+    kp = Keypoints(torch.tensor([[[9.7291e-04, 4.8310]]]), torch.tensor([[1.0626]]), torch.zeros(1, 1),
+                   torch.zeros(1, 1, dtype=torch.int64), torch.zeros(1, 1), torch.ones(1, 1, dtype=torch.bool))
+    paths = {"kernel": describe_surf(image, kp, extended=True)}
+    monkeypatch.setenv("SVS_TORCH_KERNELS", "torch")
+    paths.update(float32=describe_surf(image, kp, extended=True), float64=describe_surf(image.double(), kp, True))
+    for name, descriptor in paths.items():
+        blocks = descriptor.view(4, 4, 8)  # sub-region rows (top to bottom), columns, the 8 sums
+        assert torch.all(blocks[[0, 3], :, :2] == 0) and torch.all(blocks[:, 0, 4:6] == 0), name
+        assert blocks[[0, 3], :, 2:4].abs().amax() > 0.01 and blocks[:, 0, 6:].abs().amax() > 0.01, name
+    torch.testing.assert_close(paths["float32"].double(), paths["float64"], atol=5e-4, rtol=0)
+    if kernels.available("usurf_describe"):  # the kernel built from today's source (its cache key is the source)
+        torch.testing.assert_close(paths["kernel"].double(), paths["float64"], atol=1e-5, rtol=0)
+
+
 def test_padding_rows_are_zero_and_change_nothing():
     image = smooth_image(2, 70, 80, 7, torch.float32)
     config = SurfConfig(metric_threshold=100.0, max_keypoints=600)

@@ -34,6 +34,13 @@ static void locate(double t, int64_t size, int64_t *first, int64_t *second, doub
     *fraction = t - (double)i;
 }
 
+/* Whether the two cells [a, b] of a Haar response across an axis of ``size`` pixels lie within one pixel (no
+ * boundary k + 0.5, 0 <= k <= size - 2, strictly inside): their means are then equal and the response is 0 by
+ * definition, whatever sign round-off gives it (descriptor.py's _within_one_pixel, the same arithmetic). */
+static int within_one_pixel(double a, double b, int64_t size) {
+    return fmax(floor(a - 0.5) + 1, 0) > fmin(ceil(b - 0.5) - 1, (double)(size - 2));
+}
+
 static void describe_one(const double *table, int64_t H1, int64_t W1, int64_t pad, double x, double y, double s,
                          int extended, const double *weight, float *out) {
     double lattice[EDGES][EDGES], means[CELLS][CELLS], u[EDGES], v[EDGES];
@@ -92,11 +99,21 @@ static void describe_one(const double *table, int64_t H1, int64_t W1, int64_t pa
                 for (int d = 0; d < 4; ++d) descriptor[(bi * 4 + bj) * 4 + d] = sum[bj][d];
         }
     } else {
+        /* A response that is 0 by definition (its two cells within one pixel, as in the replicate border) counts as
+         * not negative: its round-off sign put the other response into either half (up to 0.05 from the torch
+         * path's near the border). The edges again in image coordinates, as the torch path computes them. */
+        const int64_t H = H1 - 2 * pad - 1, W = W1 - 2 * pad - 1;
+        int steady_x[SAMPLES], steady_y[SAMPLES];
+        for (int n = 0; n < SAMPLES; ++n) {
+            const double first = (double)n - CELLS / 2.0, last = (double)(n + 2) - CELLS / 2.0;
+            steady_x[n] = within_one_pixel(x + s * first, x + s * last, W);
+            steady_y[n] = within_one_pixel(y + s * first, y + s * last, H);
+        }
         for (int i = 0; i < SAMPLES; ++i)
             for (int j = 0; j < SAMPLES; ++j) {
                 const double dx = dxs[i][j], dy = dys[i][j];
                 double *block = descriptor + ((i / 5) * 4 + j / 5) * 8;
-                const int a = dy < 0 ? 0 : 2, b = dx < 0 ? 4 : 6;
+                const int a = dy < 0 && !steady_y[i] ? 0 : 2, b = dx < 0 && !steady_x[j] ? 4 : 6;
                 block[a] += dx;
                 block[a + 1] += fabs(dx);
                 block[b] += dy;
