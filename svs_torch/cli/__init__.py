@@ -9,7 +9,11 @@ package). Nothing imports the CLI.
 
 from __future__ import annotations
 
-import argparse
+from .starting import end_quietly_while_loading, interrupts_to_the_command
+
+end_quietly_while_loading()  # before the other imports: a Ctrl-C among them gave a traceback (cli.starting)
+
+import argparse  # noqa: E402 (after the handler, on purpose)
 import os
 import sys
 import warnings
@@ -298,6 +302,7 @@ def _main(argv: list[str] | None) -> int:
     keep_freed_memory()  # the commands run batch after batch (see there why)
     prog = f"svs-depth {args.command}"
     try:
+        interrupts_to_the_command()  # (the handler of cli.starting until here, where KeyboardInterrupt is caught)
         with warnings.catch_warnings(), terminated_on_sigterm(), stdout_errors_named():
             warnings.showwarning = show = _warning_printer(prog)
             code = int(args.func(args) or 0)

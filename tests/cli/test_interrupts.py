@@ -177,6 +177,37 @@ def test_a_line_said_while_another_thread_decodes_is_not_lost(tmp_path):
     assert result.stdout.endswith("collected []\n")
 
 
+#: Where a Ctrl-C lands: among the command line's imports (its first, one that takes long), and within the command.
+_LOADING = ["svs_torch.cli.bench", "svs_torch.cli.capture", "torch"]
+
+
+@pytest.mark.skipif(os.name != "posix", reason="POSIX signals")
+@pytest.mark.parametrize("route", ["console script", "python -m"])
+@pytest.mark.parametrize("module", _LOADING)
+def test_ctrl_c_while_the_program_loads_says_interrupted(tmp_path, route, module):
+    """Was: a Ctrl-C right after Enter, while svs-depth imported its modules (the first tenth of a second, more on
+    a busy machine), printed a KeyboardInterrupt traceback from inside an import; found by 'timeout -s INT 0.2
+    python -m svs_torch.cli estimate ...' at several delays. Now the line a later Ctrl-C gives, and exit 130, by
+    the console script and by ``python -m`` alike. The Ctrl-C is sent as ``module`` is first looked for (a
+    ``sitecustomize`` puts the finder that sends it first)."""
+    (tmp_path / "sitecustomize.py").write_text(
+        "import os, signal, sys\n\n\n"
+        "class CtrlC:\n"
+        "    def find_spec(self, name, path=None, target=None):\n"
+        f"        if name == {module!r}:\n"
+        "            sys.meta_path.remove(self)\n"
+        "            os.kill(os.getpid(), signal.SIGINT)\n\n\n"
+        "sys.meta_path.insert(0, CtrlC())\n")
+    script = tmp_path / "svs-depth"  # what pip writes for the console script
+    script.write_text("import re, sys\nfrom svs_torch.cli import main\nif __name__ == '__main__':\n"
+                      "    sys.argv[0] = re.sub(r'(-script\\.pyw|\\.exe)?$', '', sys.argv[0])\n    sys.exit(main())\n")
+    start = [str(script)] if route == "console script" else ["-m", "svs_torch.cli"]
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(tmp_path), str(ROOT)]))
+    result = subprocess.run([sys.executable, *start, "estimate", "left.png", "right.png"], cwd=tmp_path, env=env,
+                            capture_output=True, text=True, timeout=120)
+    assert (result.returncode, result.stderr) == (130, "svs-depth estimate: interrupted\n")
+
+
 def test_main_called_with_arguments_leaves_the_ctrl_c_handler_alone(tmp_path):
     """A script or test that calls main(argv) keeps its own Ctrl-C handling."""
     from svs_torch.cli import main
