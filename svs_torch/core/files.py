@@ -14,6 +14,7 @@ import contextlib
 import errno
 import os
 import shlex
+import stat
 import sys
 import threading
 import uuid
@@ -51,9 +52,16 @@ def display_path(path: str | os.PathLike) -> str:
 def check_list_file(path: str | os.PathLike, name: str) -> None:
     """Refuse ``path`` unless it is a file, naming ``name`` ("expected a list file, got no file: PATH"; a folder or a
     device likewise). Without torch, so ``estimate --pairs`` says it before the pipeline's imports (2.5 s)."""
+    if os.fspath(path) == "-":  # was "got no file: -", which said neither why nor what to give (an audit)
+        raise InputError(f"{name}: expected a list file, got '-': standard input is not read as a list (a list is "
+                         "read by its name, and again by each worker of estimate); write it to a file (... > "
+                         "pairs.txt) and give its name (a file named '-': ./-)")
     kind = path_kind(path, name)
     if kind != "file":
         got = {"folder": "a folder", "missing": "no file"}.get(kind, "a special file")
+        if kind == "other" and stat.S_ISFIFO(os.stat(path).st_mode):  # /dev/stdin in a pipeline, <(...): read once
+            got = ("a pipe, which gives its lines once (a list is read by its name, and again by each worker of "
+                   "estimate): write it to a file and give its name")
         raise InputError(f"{name}: expected a list file, got {got}: {display_path(path)}")
 
 

@@ -545,6 +545,19 @@ def test_options_a_command_would_ignore_or_misread_are_refused(data_dir, capsys,
     assert {key: Path(path).read_bytes() for key, path in names.items()} == before
 
 
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="named pipes")
+def test_estimate_pairs_from_standard_input_or_a_pipe_says_to_write_the_list_to_a_file(capsys, tmp_path):
+    """'estimate --pairs -' said "expected a list file, got no file: -", and a pipe ('--pairs /dev/stdin' in a
+    pipeline, '--pairs <(...)') "got a special file", neither saying what to give: the list is read by its name, by
+    this process and again by each worker, which a pipe cannot give twice. Both now say to write it to a file."""
+    fifo = tmp_path / "pairs.fifo"
+    os.mkfifo(fifo)
+    for value, got in (("-", "got '-': standard input is not read as a list"), (str(fifo), "got a pipe, which gives")):
+        code, out, err = run_cli(capsys, "estimate", "--pairs", value)
+        assert code == 2 and out == "" and err.count("\n") == 1, err
+        assert f"svs-depth estimate: error: --pairs: expected a list file, {got}" in err and "write it to a file" in err
+
+
 def test_fundamental_takes_segmentation_options_where_it_segments(data_dir, capsys):
     left, right = (str(data_dir / p) for p in TEDDY)
     code, out, _ = run_cli(capsys, "fundamental", left, right, "--preset", "paper", "--keep", "1", "--size", "160x120",
