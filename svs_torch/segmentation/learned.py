@@ -32,7 +32,8 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from ..core.checks import InputError, check_dtype, check_image, check_instance, check_positive_scalar, check_shape
+from ..core.checks import (InputError, check_dtype, check_image, check_instance, check_positive_scalar, check_real,
+                           check_shape)
 from ..core.numerics import per_pair
 from ..core.types import Segmentation, SegmentationStatus, StereoBatch, StereoSegmentation
 from ..depth.dense_config import DenseConfig
@@ -142,10 +143,17 @@ def segment_learned(image: torch.Tensor, logits: torch.Tensor, config: Segmentat
     ``threshold`` holds the probability threshold and ``threshold_level`` it on the 0–255 scale; ``binary`` is
     the thresholded probability. Status as the Otsu stage's: ``UNIFORM_IMAGE`` for a one-level image (no
     information), ``NO_FOREGROUND`` when nothing survives the opening. Not differentiable.
+
+    Raises:
+        InputError: naming the argument, for images or logits of another shape or kind, a ``config`` that is not a
+            :class:`SegmentationConfig`, or a ``probability_threshold`` outside (0, 1) (0 and 1 raised
+            ValueError and ZeroDivisionError from the logit, NaN kept nothing in silence: an audit).
     """
     dims = check_image(image, "image")
     check_shape(logits, "logits", [dims["B"], 1, dims["H"], dims["W"]])
     check_dtype(logits, "logits", "float")
+    check_instance(config, "config", SegmentationConfig)
+    check_real(probability_threshold, "probability_threshold", 0.0, 1.0, low_open=True, high_open=True)
     b = dims["B"]
     binary = logits.detach() > math.log(probability_threshold / (1 - probability_threshold))
     element = structuring_element(config.kernel_shape, config.kernel_size, device=image.device)
@@ -238,6 +246,8 @@ def soft_object_depths(logits: torch.Tensor, segmentation: Segmentation, dispari
     """
     dims = check_shape(logits, "logits", ["B", 1, "H", "W"])
     check_dtype(logits, "logits", "float")
+    # One view's: a StereoSegmentation (or None) raised AttributeError on .labels (an audit).
+    check_instance(segmentation, "segmentation", Segmentation)
     check_shape(disparity_px, "disparity_px", list(logits.shape))
     check_dtype(disparity_px, "disparity_px", "float")
     check_shape(segmentation.labels, "segmentation.labels", list(logits.shape))

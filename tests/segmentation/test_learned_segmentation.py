@@ -272,6 +272,29 @@ def test_soft_object_depths_invalid_and_empty_slots():
     assert soft.depth_m.eq(0).all() and soft.nearest_m.eq(0).all()
 
 
+@pytest.mark.parametrize("argument, value", [("probability_threshold", 0.0), ("probability_threshold", 1.0),
+                                             ("probability_threshold", 1.5), ("probability_threshold", float("nan")),
+                                             ("config", "otsu")])
+def test_segment_learned_names_a_bad_threshold_or_config(argument, value):
+    """Were: a threshold of 0 or above 1 raised ValueError ("math domain error"), 1 ZeroDivisionError, from the
+    logit; NaN kept no pixel in silence (NO_FOREGROUND); a config string raised AttributeError (an audit)."""
+    image, logits = torch.full((1, 1, 8, 8), 0.5), torch.zeros(1, 1, 8, 8)
+    with pytest.raises(InputError, match=f"^{argument}: expected"):
+        segment_learned(image, logits, **{argument: value})
+    assert segment_learned(image, logits, probability_threshold=0.25).binary.all()
+
+
+@pytest.mark.parametrize("segmentation", ["stereo", None])
+def test_soft_object_depths_names_a_segmentation_of_another_kind(scenes, segmentation):
+    """Was: a StereoSegmentation (what segment_stereo_learned returns) or None raised AttributeError on .labels
+    (an audit); soft_nearest_depth already named it."""
+    batch = scenes.batch
+    stereo = segment_stereo_learned(batch, net=ObstacleNet()) if segmentation == "stereo" else None
+    with pytest.raises(InputError, match="^segmentation: expected a Segmentation, got "):
+        soft_object_depths(torch.zeros_like(batch.left), stereo, torch.zeros_like(batch.left), batch.focal_px,
+                           batch.baseline_m, batch.doffs_px)
+
+
 # --------------------------------------------------------------------------------------------- pipeline, CLI
 def _write_pair(tmp_path, scenes) -> tuple[str, str]:
     paths = []
