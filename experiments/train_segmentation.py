@@ -38,7 +38,8 @@ region (its gradient reaches every pixel of the region, not only the median's ba
 map is in rectified pixels, are left out of this term). With ``--batch-size`` at least the number of pairs every
 step sees every pair, and the weights written are those of the lowest loss (the first two terms). The printed depth
 loss per step is that of the weights before the step. Its defaults: 20 steps at learning rate 1e-4 (training from
-scratch: 700 at 3e-3). Listed pairs without ground truth are left out, and said.
+scratch: 700 at 3e-3). Listed pairs without ground truth are left out, and said; those without a calibration take a
+nominal one for their truth's depth (``with_nominal_calibration``, as ``svs-depth eval`` scores them), and said.
 
     python experiments/train_segmentation.py --through-pipeline [--pairs FILE] [--steps 20] [--out FILE]
 """
@@ -398,23 +399,37 @@ def fine_tune_through_pipeline(pairs: list[StereoBatch], net: ObstacleNet, confi
     return history
 
 
+def listed_pairs(list_file: str) -> list[StereoBatch]:
+    """The pairs of the pair list ``list_file`` (``--pairs``) that have ground truth, each left out said; those
+    without a calibration given a nominal one (:func:`~svs_torch.evaluation.with_nominal_calibration`), as
+    ``svs-depth eval`` scores them and as the training scenes are read. Why: a shared KITTI frame loads uncalibrated,
+    so its truth had no depth, and a fine-tune on such pairs printed a loss of 0 over 0 objects at every step and
+    wrote its starting weights as trained, without a word (an audit)."""
+    sources = read_pair_list(list_file, "--pairs")
+    bad = [source.problem for source in sources if source.problem]
+    # InputError, as run_script ends every refused input (exit status 2; SystemExit of the text was status 1)
+    if bad:  # a traceback from inside before
+        raise InputError(bad[0])
+    pairs = [load_pair_source(source) for source in sources]
+    without = [p.names[0] if p.names else "?" for p in pairs if p.disparity_px is None]
+    pairs = [p for p in pairs if p.disparity_px is not None]
+    if without:  # they add nothing to a loss against ground truth: said, not silently skipped
+        print(f"--pairs: {len(without)} pair(s) without ground truth left out: {', '.join(without[:5])}",
+              file=sys.stderr)
+    if not pairs:
+        raise InputError("--pairs: no listed pair has ground truth (a scene folder with its disparity); nothing "
+                         "to train on")
+    nominal = [p.names[0] if p.names else "?" for p in pairs if not bool(p.calibrated.all())]
+    if nominal:
+        print(f"--pairs: {len(nominal)} pair(s) without a calibration given a nominal one for their truth's depth, as "
+              f"svs-depth eval scores them: {', '.join(nominal[:5])}", file=sys.stderr)
+    return [with_nominal_calibration(p) for p in pairs]
+
+
 def through_pipeline_main(args: argparse.Namespace, config: TrainConfig, command: str) -> Path:
     generator = torch.Generator().manual_seed(config.seed)
     if args.pairs is not None:  # "" is a list file name to refuse, not the training scenes (an audit)
-        sources = read_pair_list(args.pairs, "--pairs")
-        bad = [source.problem for source in sources if source.problem]
-        # InputError, as run_script ends every refused input (exit status 2; SystemExit of the text was status 1)
-        if bad:  # a traceback from inside before
-            raise InputError(bad[0])
-        pairs = [load_pair_source(source) for source in sources]
-        without = [p.names[0] if p.names else "?" for p in pairs if p.disparity_px is None]
-        pairs = [p for p in pairs if p.disparity_px is not None]
-        if without:  # they add nothing to a loss against ground truth: said, not silently skipped
-            print(f"--pairs: {len(without)} pair(s) without ground truth left out: {', '.join(without[:5])}",
-                  file=sys.stderr)
-        if not pairs:
-            raise InputError("--pairs: no listed pair has ground truth (a scene folder with its disparity); nothing "
-                             "to train on")
+        pairs = listed_pairs(args.pairs)
     else:
         pairs = [with_nominal_calibration(load_stereo_pair(path)) for path in train_scenes(Path(args.data))]
     pairs = [resize_stereo_batch(pair, checked_size(args.size)) for pair in pairs]

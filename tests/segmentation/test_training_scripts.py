@@ -160,6 +160,21 @@ def test_a_pair_list_without_ground_truth_is_refused_with_the_status_of_a_refuse
     assert not out.exists()
 
 
+def test_a_listed_pair_without_a_calibration_is_trained_on_with_a_nominal_one(data_dir, tmp_path, capsys) -> None:
+    # Found by an audit of fine-tuning through the pipeline: a shared KITTI frame loads uncalibrated, so its truth had
+    # no depth; '--pairs' of KITTI frames printed "depth loss 0.00000 (0 objects)" at every step and wrote the starting
+    # weights as trained, in silence. Now such pairs take a nominal calibration (KITTI's own rig), as svs-depth eval
+    # scores them, and it is said.
+    frame = data_dir / "kitti" / "stereo2012_training" / "colored_0" / "000000_10.png"
+    (tmp_path / "pairs.txt").write_text(f"{frame}\n")
+    out = tmp_path / "net.pt"
+    train_segmentation.main(["--through-pipeline", "--pairs", str(tmp_path / "pairs.txt"), "--steps", "1",
+                             "--size", "320x97", "--threads", "1", "--out", str(out)])
+    printed = capsys.readouterr()
+    assert "1 pair(s) without a calibration given a nominal one" in printed.err and "kitti2012/000000_10" in printed.err
+    assert "(0 objects)" not in printed.out and out.exists()
+
+
 def test_a_diverged_training_run_says_so(data_dir, tmp_path) -> None:
     # '--learning-rate 1e30' ended in "logits: expected numbers, got NaN" (the soft depth's check of its input), as if
     # an input were broken; nothing said the run had diverged, nor which setting to change.
