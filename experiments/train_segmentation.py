@@ -502,7 +502,14 @@ def init_weights(text: str) -> str:
     if text.partition(":")[0] != "learned":
         raise argparse.ArgumentTypeError(f"expected 'learned' or 'learned:PATH' (obstacle-network weights; nearness "
                                          f"weights are trained by train_nearness.py), got {text!r}")
-    return segmenter_choice(text)  # svs-depth's --segmenter check: the file read, its error one line
+    try:
+        return segmenter_choice(text)  # svs-depth's --segmenter check: the file read, its error one line
+    except argparse.ArgumentTypeError as error:
+        # Its advice for a nearness file, "give it as nearness:PATH", is svs-depth's; --init refused that in turn
+        # (an audit: each message sent the user to the other).
+        raise argparse.ArgumentTypeError(str(error).replace(
+            "(give it as nearness:PATH)", "(--init takes obstacle-network weights; nearness weights are trained by "
+            "train_nearness.py)")) from None
 
 
 def size_text(text: str) -> str:

@@ -175,6 +175,21 @@ def test_a_listed_pair_without_a_calibration_is_trained_on_with_a_nominal_one(da
     assert "(0 objects)" not in printed.out and out.exists()
 
 
+def test_init_with_a_nearness_file_does_not_advise_an_init_it_refuses() -> None:
+    # Found by an audit: '--init learned:nearness_net.pt' said "give it as nearness:PATH", and '--init nearness:PATH'
+    # then said "expected 'learned' or 'learned:PATH'": each message sent the user to the other.
+    import argparse
+
+    from svs_torch.segmentation.network_files import NEARNESS_WEIGHTS
+
+    with pytest.raises(argparse.ArgumentTypeError) as refused:
+        train_segmentation.init_weights(f"learned:{NEARNESS_WEIGHTS}")
+    assert "is a nearness network file" in str(refused.value) and "nearness:PATH" not in str(refused.value)
+    assert "nearness weights are trained by train_nearness.py" in str(refused.value)
+    with pytest.raises(argparse.ArgumentTypeError, match="nearness weights are trained by train_nearness.py"):
+        train_segmentation.init_weights(f"nearness:{NEARNESS_WEIGHTS}")
+
+
 def test_a_diverged_training_run_says_so(data_dir, tmp_path) -> None:
     # '--learning-rate 1e30' ended in "logits: expected numbers, got NaN" (the soft depth's check of its input), as if
     # an input were broken; nothing said the run had diverged, nor which setting to change.
