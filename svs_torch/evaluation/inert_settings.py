@@ -1,9 +1,10 @@
 """Settings a configuration never reads: ``--set dense.window_size=9`` under the paper's range rule.
 
 Why: the dense SAD stage and everything built on its map (the verification of the views, the second passes, the
-dropped regions, the near surfaces, the exposure retry) run only under the dense range rule
-(``depth.rule = "dense"``; :func:`~svs_torch.pipeline.estimate_obstacle_depth`). Under the paper's rule (Eq. (5)–(8)
-over the RANSAC inliers, ``--preset paper``) such a setting changes nothing, and a sweep over it stored one result
+dropped regions, the near surfaces, the exposure retry, each object's least valid pixels and its repeated-pattern
+checks) run only under the dense range rule (``depth.rule = "dense"``;
+:func:`~svs_torch.pipeline.estimate_obstacle_depth`). Under the paper's rule (Eq. (5)–(8) over the RANSAC inliers,
+``--preset paper``) such a setting changes nothing, and a sweep over it stored one result
 under as many configurations, read as "this setting does not matter" (an audit of ``--set``). It is said, not
 refused: a configuration file shared between both rules is fine. Likewise the nearness segmenter's own settings (its
 floor, its share of the view measured, its clipped regions, its keep rule and that rule's least areas) under Otsu
@@ -23,7 +24,7 @@ from ..pipeline import PipelineConfig
 
 __all__ = ["DENSE_RULE_ONLY", "NEARNESS_SEGMENTER_ONLY", "inert_overrides", "warn_inert_overrides"]
 
-#: The top-level fields (and ``dense``, with every ``dense.*``) that only the dense range rule reads
+#: The fields (``dense`` with every ``dense.*``, and some of ``depth``) that only the dense range rule reads
 #: (``PipelineConfig``'s docstring: "under the dense rule").
 DENSE_RULE_ONLY = (
     "dense", "verify_min_inliers", "verify_min_inlier_share", "verify_min_agreeing_inliers", "verify_many_inliers",
@@ -31,6 +32,12 @@ DENSE_RULE_ONLY = (
     "verify_whole_view", "noisy_retry_sigma_px", "noisy_features_retry_sigma_px", "coarse_retry_below_share",
     "drop_unmeasured_below_share", "drop_unmeasured_nearer_below_share", "region_interior_working_px",
     "measure_near_surface", "exposure_retry", "exposure_retry_max_residual_ratio",
+    # DepthConfig's fields that measure objects on the dense map (its docstring: '"dense" rule'); the paper's rule
+    # reads depth.rule, percentiles, object_percentiles, min_object_inliers and min_in_front_share.
+    "depth.surface_within_in_view_top", "depth.min_object_pixels", "depth.min_object_valid_fraction",
+    "depth.min_object_valid_fraction_unverified", "depth.min_object_pixels_in_view",
+    "depth.coarse_retry_max_period_peak", "depth.alias_check_min_period_peak", "depth.coarse_retry_max_period_px",
+    "depth.alias_check_max_period_px",
 )
 #: The segmentation fields only the nearness segmenter reads (``SegmentationConfig``'s docstring: its floor, its
 #: share of the view measured, its clipped regions; "the other segmenters never look"). Its keep rule too, with the
