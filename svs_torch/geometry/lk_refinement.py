@@ -26,6 +26,9 @@ __all__ = ["LK_GRID_HALF_WIDTH", "MAX_LK_ITERATIONS", "MatchRefinementConfig", "
 
 #: Half-width, in samples, of the patch grid of :func:`refine_matches_lk` (a 13 × 13 grid).
 LK_GRID_HALF_WIDTH = 6
+#: The largest patch radius: the radii are a float32 tensor (``max_radius_px`` 1e39 passed the check, then made every
+#: pair an ERROR row, "value cannot be converted to type float without overflow"; an audit of --set).
+_MAX_RADIUS_PX = float(torch.finfo(torch.float32).max)
 
 
 @dataclass(frozen=True)
@@ -54,9 +57,9 @@ class MatchRefinementConfig:
             raise InputError(f"iterations: expected an integer from 0 to {MAX_LK_ITERATIONS}, got {self.iterations!r}")
         shift, scales, low, high = (real_or_nan(getattr(self, name)) for name in (
             "max_shift_px", "radius_scales", "min_radius_px", "max_radius_px"))
-        if not (shift >= 0 and scales > 0 and 0 < low <= high < math.inf):
+        if not (shift >= 0 and scales > 0 and 0 < low <= high <= _MAX_RADIUS_PX):
             raise InputError("MatchRefinementConfig: expected max_shift_px >= 0, radius_scales > 0 and "
-                             f"0 < min_radius_px <= max_radius_px < inf, got {self.max_shift_px!r}, "
+                             f"0 < min_radius_px <= max_radius_px <= {_MAX_RADIUS_PX:.3g}, got {self.max_shift_px!r}, "
                              f"{self.radius_scales!r}, {self.min_radius_px!r}, {self.max_radius_px!r}")
         if not -1 <= real_or_nan(self.min_correlation) <= 1:
             raise InputError(f"min_correlation: expected a correlation in [-1, 1], got {self.min_correlation!r}")
@@ -159,9 +162,10 @@ def refine_matches_lk(
     check_nonempty(left, "left")
     _check_scale(scale, points.valid)
     if not (0 <= iterations <= MAX_LK_ITERATIONS and max_shift_px >= 0 and 0 < min_radius_px <= max_radius_px
-            < math.inf and radius_scales > 0 and -1 <= min_correlation <= 1):  # NaN fails each
+            <= _MAX_RADIUS_PX and radius_scales > 0 and -1 <= min_correlation <= 1):  # NaN fails each
         raise InputError(f"refine_matches_lk: expected 0 <= iterations <= {MAX_LK_ITERATIONS}, max_shift_px >= 0, "
-                         f"radius_scales > 0, 0 < min_radius_px <= max_radius_px < inf and min_correlation in [-1, 1], "
+                         f"radius_scales > 0, 0 < min_radius_px <= max_radius_px <= {_MAX_RADIUS_PX:.3g} and "
+                         f"min_correlation in [-1, 1], "
                          f"got {iterations}, {max_shift_px}, {radius_scales}, {min_radius_px}, {max_radius_px}, "
                          f"{min_correlation}")
     if k == 0 or not bool(points.valid.any()):

@@ -129,11 +129,12 @@ class GroundPlaneConfig:
         for name in ("min_share", "lower_rows_fraction", "max_behind_share"):
             if not 0 < real_or_nan(getattr(self, name)) <= 1:
                 raise InputError(f"{name}: expected a share in (0, 1], got {getattr(self, name)!r}")
-        if not (real_or_nan(self.tolerance_px) > 0 and real_or_nan(self.noisy_tolerance_px) > 0
+        most = torch.finfo(torch.float32).max  # (a float32 tensor: 1e39 failed in torch.full, an ERROR row a pair)
+        if not (0 < real_or_nan(self.tolerance_px) <= most and 0 < real_or_nan(self.noisy_tolerance_px) <= most
                 and 0 <= real_or_nan(self.tolerance_fraction) < 1):
-            raise InputError(f"tolerance_px, noisy_tolerance_px, tolerance_fraction: expected > 0, > 0 and a share in "
-                             f"[0, 1), got {self.tolerance_px!r}, {self.noisy_tolerance_px!r}, "
-                             f"{self.tolerance_fraction!r}")
+            raise InputError(f"tolerance_px, noisy_tolerance_px, tolerance_fraction: expected each of the first two in "
+                             f"(0, {most:.3g}] and a share in [0, 1), got {self.tolerance_px!r}, "
+                             f"{self.noisy_tolerance_px!r}, {self.tolerance_fraction!r}")
         # An audit: 2^31 samples tried to allocate 86 GB, a 2^63 count or seed failed inside torch, a string or -1 as
         # min_span_px ran (2^20 samples fit a 320x240 map in 0.7 s; a generator's seed is a 64-bit number).
         check_count(self.hypotheses, "hypotheses", 8, most=MAX_HYPOTHESES)

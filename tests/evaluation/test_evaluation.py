@@ -317,6 +317,15 @@ def test_overrides_set_nested_fields_with_their_types():
     ({"feature_smoothing_sigma_px": 1e9}, "feature_smoothing_sigma_px: expected a σ in (0, 1000] pixels or None"),
     ({"noisy_retry_sigma_px": 1e6}, "noisy_retry_sigma_px: expected a σ in (0, 1000] pixels or None"),
     ({"noisy_features_retry_sigma_px": 2**63}, "noisy_features_retry_sigma_px: expected a σ in (0, 1000]"),
+    # Past float32's largest number (3.4e38): accepted, then every pair of an eval or a sweep an ERROR row, "value
+    # cannot be converted to type float without overflow", naming no setting (an audit of sweeps and presets).
+    ({"segmentation.ground.tolerance_px": 1e39}, "segmentation.ground.tolerance_px = 1e+39: tolerance_px, "
+                                                 "noisy_tolerance_px, tolerance_fraction: expected each of the first "
+                                                 "two in (0, 3.4e+38]"),
+    ({"segmentation.ground.noisy_tolerance_px": 1e39}, "noisy_tolerance_px = 1e+39: tolerance_px, noisy_tolerance_px"),
+    ({"refine_matches.max_radius_px": 1e39}, "refine_matches.max_radius_px = 1e+39: MatchRefinementConfig: expected "
+                                             "max_shift_px >= 0, radius_scales > 0 and 0 < min_radius_px <= "
+                                             "max_radius_px <= 3.4e+38"),
 ])
 def test_bad_overrides_name_the_key(overrides, message):
     with pytest.raises(InputError) as error:
