@@ -47,6 +47,7 @@ import json
 import platform
 import sys
 import time
+import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -182,6 +183,18 @@ def _too_many(name: str, entries: int, points: int) -> str:
             f"most {MAX_GRID_POINTS}; list fewer, or split them into several sweeps")
 
 
+def _warn_repeated(configs: Sequence[SweepConfig], name: str) -> None:
+    """Warn where a sweep file's configurations are one (``[5, 5]``): each runs once, said "1 configuration"."""
+    firsts: dict[str, str] = {}  # each configuration's first label (setdefault records it, and is never None)
+    repeats = [(firsts[c.config_id], c.label) for c in configs if c.config_id in firsts
+               or firsts.setdefault(c.config_id, c.label) is None]
+    if repeats:
+        (first, again), count = repeats[0], len(configs)
+        example = f"{again!r} twice" if again == first else f"{again!r} is {first!r}"
+        warnings.warn(f"{name}: {count} configurations listed, {count - len(repeats)} distinct: {len(repeats)} repeat"
+                      f"{'s' * (len(repeats) == 1)} one listed before ({example}); each runs once", stacklevel=3)
+
+
 def load_sweep(path: str | Path) -> Sweep:
     """Read and check a sweep file (module docstring); every error is one InputError naming the file."""
     path = Path(path)
@@ -238,6 +251,7 @@ def load_sweep(path: str | Path) -> Sweep:
             configs.append(make_sweep_config(entry_preset, merge_overrides(fixed, varying), size_wh, label,
                                              f"{name}: grid"))
     warn_inert_overrides([(c.config, c.overrides) for c in configs], name)  # one line, not one a configuration
+    _warn_repeated(configs, name)
     sources = read_pair_sources(resolved, f"{name}: paths")
     return make_sweep(sources, configs, size_wh, batch_size, path.read_text(encoding="utf-8"))
 

@@ -13,6 +13,7 @@ import sqlite3
 import subprocess
 import sys
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -741,6 +742,27 @@ def test_one_configuration_reached_by_two_descriptions_keeps_both_labels(tmp_pat
         store.add_configs([same.record(), default.record()])  # a sweep run again: no label twice
         labels = {c["config_id"]: c["label"] for c in store.configs()}
     assert labels == {default.config_id: "(preset) | max_ratio=0.8", other.config_id: "max_ratio=0.7"}
+
+
+def test_a_sweep_file_listing_one_configuration_twice_says_so(data_dir, tmp_path):
+    """Found by an audit of sweeps: a grid holding the same value twice, or a [[configs]] entry setting what the
+    preset already has, made fewer configurations than the file lists (each runs once) and the sweep said only "2
+    configurations", never why; now a warning counts them and names a repeat."""
+    scene = data_dir / "middlebury_eval3_Q" / "Teddy"
+    path = tmp_path / "twice.toml"
+    path.write_text(f'paths = ["{scene}"]\nsize = "160x120"\n[grid]\n"segmentation.kernel_size" = [5, 5, 3]\n')
+    with pytest.warns(UserWarning, match=r"twice.toml: 3 configurations listed, 2 distinct: 1 repeats one listed "
+                                         r"before \('segmentation.kernel_size=5' twice\); each runs once"):
+        assert len(load_sweep(path).configs) == 2
+    ratio = PipelineConfig().max_ratio
+    path.write_text(f'paths = ["{scene}"]\nsize = "160x120"\n[[configs]]\n[[configs]]\nmax_ratio = {ratio}\n')
+    with pytest.warns(UserWarning, match=rf"2 configurations listed, 1 distinct: 1 repeats one listed before "
+                                         rf"\('max_ratio={ratio}' is '\(preset\)'\)"):
+        assert [c.label for c in load_sweep(path).configs] == [f"(preset) | max_ratio={ratio}"]
+    path.write_text(f'paths = ["{scene}"]\nsize = "160x120"\n[grid]\n"segmentation.kernel_size" = [3, 5]\n')
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # distinct configurations: no word
+        assert len(load_sweep(path).configs) == 2
 
 
 def test_configurations_of_two_sweeps_differing_only_in_set_are_told_apart(data_dir, tmp_path, capsys):
