@@ -168,6 +168,10 @@ def test_results_of_a_store_without_rows_says_so(tmp_path, capsys):
                                        "pair run); running the sweep's command again fills it\n")
     assert main(["results", str(tmp_path / "empty.sqlite"), "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["configs"] == []
+    # An audit of sweeps: with --figure too the --csv was written (a header alone) before the figure said so, exit 2.
+    rows, figure = tmp_path / "rows.csv", tmp_path / "figure.png"
+    assert main(["results", str(tmp_path / "empty.sqlite"), "--csv", str(rows), "--figure", str(figure)]) == 2
+    assert "holds no results yet" in capsys.readouterr().err and not rows.exists() and not figure.exists()
 
 
 @pytest.mark.parametrize("swept", [1, 2])

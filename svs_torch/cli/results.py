@@ -258,6 +258,10 @@ def run(args: argparse.Namespace) -> int:
         print(f"svs-depth results: note: a sweep is writing {args.db} now; these are the rows stored so far",
               file=sys.stderr)
     with ResultStore(args.db, create=False) as store:
+        if args.figure:  # first: a store without rows has no figure, and its --csv was written before it said so
+            with write_errors_named(args.figure_option, args.figure):
+                plot_results(store, args.figure)
+            print(f"figure written to {args.figure}", file=sys.stderr)
         if args.csv:
             header, rows = csv_table(store)
             if args.csv == "-":
@@ -266,10 +270,6 @@ def run(args: argparse.Namespace) -> int:
                 with write_errors_named("--csv", args.csv), \
                         atomic_output(args.csv, "w", newline="", encoding="utf-8") as stream:
                     csv.writer(stream).writerows([header, *rows])
-        if args.figure:
-            with write_errors_named(args.figure_option, args.figure):
-                plot_results(store, args.figure)
-            print(f"figure written to {args.figure}", file=sys.stderr)
         if args.summary or args.json or not (args.csv or args.figure):
             rows = store.results()  # read once, for both
             summaries = config_summaries(store, rows)
