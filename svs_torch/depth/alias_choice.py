@@ -239,7 +239,7 @@ def settle_repeated_objects(left: torch.Tensor, right: torch.Tensor, objects: to
     ``right``: ``(B, 1, H, W)``, the views ``dense`` was measured on. Not differentiable."""
     periods = object_periods(left, objects, min_period_peak, config, max_period_px)
     index = (periods > 0).any(dim=1).nonzero().flatten()
-    none = RepeatedObjects.none(objects)
+    none = RepeatedObjects.none(objects, left.dtype)
     if len(index) == 0:
         return dataclasses.replace(dense, repeated=none)
     found, told = whole_object_disparity(left[index], right[index], objects[index], dense.min_disparity_px[index],

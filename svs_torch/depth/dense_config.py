@@ -239,12 +239,12 @@ class RepeatedObjects:
         return (self.period_px > 0) & ~ranged
 
     @staticmethod
-    def none(objects: torch.Tensor) -> RepeatedObjects:
-        """No object of ``objects`` ``(B, N, H, W)`` repeats."""
+    def none(objects: torch.Tensor, dtype: torch.dtype) -> RepeatedObjects:
+        """No object of ``objects`` ``(B, N, H, W)`` repeats; ``disparity_px`` in ``dtype`` (the views')."""
         shape, device = objects.shape[:2], objects.device
         none = torch.zeros(shape, dtype=torch.bool, device=device)
-        return RepeatedObjects(torch.zeros(shape, dtype=torch.int64, device=device), torch.zeros(shape, device=device),
-                               none, none)
+        return RepeatedObjects(torch.zeros(shape, dtype=torch.int64, device=device),
+                               torch.zeros(shape, dtype=dtype, device=device), none, none)
 
 
 @dataclass(frozen=True)

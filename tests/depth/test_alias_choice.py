@@ -9,7 +9,8 @@ import pytest
 import torch
 
 from svs_torch.core.errors import InputError
-from svs_torch.depth.alias_choice import alias_depths_m, remeasure_on_alias, settle_aliases, whole_object_disparity
+from svs_torch.depth.alias_choice import (alias_depths_m, remeasure_on_alias, settle_aliases, settle_repeated_objects,
+                                          whole_object_disparity)
 from svs_torch.depth.dense import dense_disparity_in_range
 from svs_torch.depth.dense_config import DenseConfig, DenseDisparity, RepeatedObjects
 
@@ -171,6 +172,21 @@ def test_dense_disparity_in_range_measures_only_the_range_given():
     beside = dense_disparity_in_range(left, right, mask, torch.tensor([22]), torch.tensor([4]))
     found = beside.disparity_px[beside.valid]
     assert len(found) > 0 and bool(((found >= 21.5) & (found <= 26.0)).all())
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_repeated_disparities_follow_the_views_dtype_whether_or_not_an_object_repeats(dtype):
+    """A float64 batch where nothing repeated got ``repeated.disparity_px`` in float32 (the default dtype), the one
+    float32 tensor of a float64 pipeline result (a library user's audit); a repeated panel's was float64."""
+    left, right, panel = panel_pair(disparity=20, period=8)
+    wall = torch.zeros_like(panel)
+    wall[..., 5:15, 10:60] = True
+    for mask in (wall, panel):
+        views = left.to(dtype), right.to(dtype)
+        dense = dense_disparity_in_range(*views, mask, torch.tensor([0]), torch.tensor([48]))
+        repeated = settle_repeated_objects(*views, mask, dense, 0.5).repeated
+        assert repeated.disparity_px.dtype == dtype and dense.disparity_px.dtype == dtype
+    assert repeated.period_px.tolist() == [[8]]  # the panel repeats: the other branch ran too
 
 
 @pytest.mark.parametrize("call, name", [
