@@ -74,6 +74,12 @@ def check_shape(tensor: torch.Tensor, name: str, spec: Sequence[str | int]) -> d
 FLOAT_DTYPES = (torch.float32, torch.float64)
 
 
+def check_float_dtype(dtype: object, name: str = "dtype") -> None:
+    """Check a ``dtype`` argument (what a loader or a renderer makes its tensors in): one of :data:`FLOAT_DTYPES`."""
+    if dtype not in FLOAT_DTYPES:
+        raise InputError(f"{name}: expected torch.float32 or torch.float64, got {dtype!r}")
+
+
 def check_dtype(tensor: torch.Tensor, name: str, kinds: str) -> None:
     """Check the dtype family: ``"float"`` (float32 or float64), ``"bool"``, ``"int"`` (any integer), or several
     joined by ``|``."""

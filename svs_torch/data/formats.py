@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from ..core.camera import MAX_SIZE_PX, calibration_value_expected
-from ..core.checks import FLOAT_DTYPES, InputError, check_real
+from ..core.checks import InputError, check_float_dtype, check_real
 from ..core.files import display_path, write_bytes_atomic
 from ..core.image_files import check_file as _check_file
 from ..core.image_files import read_image_array as _imread
@@ -220,9 +220,8 @@ def read_gray_image(path: str | Path, name: str = "path", dtype: torch.dtype = t
         InputError: naming ``name``, for a missing file, a file OpenCV cannot decode, a channel count other
             than 1 to 4, or a dtype other than uint8 / uint16.
     """
-    if dtype not in FLOAT_DTYPES:
-        # Gray levels in [0, 1] need a float type the pipeline computes in; int64 would floor them to 0 or 1.
-        raise InputError(f"dtype: expected torch.float32 or torch.float64, got {dtype}")
+    # Gray levels in [0, 1] need a float type the pipeline computes in; int64 would floor them to 0 or 1.
+    check_float_dtype(dtype)
     array = _imread(path, name, gray=True)
     channels = 1 if array.ndim == 2 else array.shape[2]
     if channels not in (1, 2, 3, 4):

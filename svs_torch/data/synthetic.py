@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import torch
 
 from ..core.camera import SVS_CAMERA, SVSCamera
-from ..core.checks import InputError, check_dtype, check_generator, check_shape
+from ..core.checks import InputError, check_dtype, check_float_dtype, check_generator, check_shape
 from ..core.types import StereoBatch
 from .heap_rendering import draw, make_heap_field
 from .scene_rendering import _check_scene_size, _Scene, _cast_rays, _render_view, _surface_tiles, _visible_bboxes
@@ -192,7 +192,7 @@ def render_obstacle_scenes(
         camera: the rig (focal length in pixels, baseline).
         background_depth_m: depth of the wall, metres.
         generator: source of the textures and the noise; None draws a fresh nondeterministic seed.
-        dtype: floating dtype of the outputs (the geometry is computed in it too).
+        dtype: ``torch.float32`` or ``torch.float64``, the outputs' (the geometry is computed in it too).
         supersample: images shaded on a finer grid by this factor and area-averaged (truth at pixel centres).
         noise_std: standard deviation of additive gaussian sensor noise on [0, 1] intensities.
         texture_contrast: the texture amplitude as a multiple of the default (0.14 on objects, 0.10 on the wall);
@@ -216,6 +216,7 @@ def render_obstacle_scenes(
     Returns:
         :class:`SyntheticScenes` on ``object_depth_m``'s device. Not meant to be differentiated (module docstring).
     """
+    check_float_dtype(dtype)  # float16 failed deep in the renderer, int64 gave float32 images, a string 'no device'
     object_valid = _check_render_args(object_depth_m, object_center_xy_m, object_size_m, object_valid,
                                       tuple(size_wh), background_depth_m, supersample, noise_std)
     _check_look_args(texture_contrast, floor_height_m, camera_pitch_deg, wall_texture_contrast)
@@ -383,9 +384,10 @@ def random_obstacle_scenes(
 
     Raises:
         InputError: naming ``batch_size``, ``num_objects`` (too many to fit side by side at ``near``),
-            ``size_wh`` or ``depth_range_m`` (not ``0 < near <= far < background_depth_m``).
+            ``size_wh``, ``depth_range_m`` (not ``0 < near <= far < background_depth_m``) or ``dtype``.
     """
     size_wh = tuple(size_wh)
+    check_float_dtype(dtype)
     background_depth_m = render_kwargs.get("background_depth_m", WALL_DEPTH_M)
     _check_random_args(batch_size, num_objects, size_wh, tuple(depth_range_m), background_depth_m, camera,
                        render_kwargs.get("supersample", 2))

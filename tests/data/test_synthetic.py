@@ -326,6 +326,19 @@ def test_random_scene_errors(kwargs: dict, message: str) -> None:
         random_obstacle_scenes(**args)
 
 
+@pytest.mark.parametrize("dtype", [torch.float16, torch.int64, torch.bool, "float64"])
+def test_a_dtype_the_pipeline_does_not_compute_in_is_named(dtype) -> None:
+    """A library user's audit: float16 failed deep in the renderer (torch's "Unsupported dtype Half", naming
+    ``object_depth_m`` from random_obstacle_scenes, which the caller never gave), int64 gave float32 scenes in silence
+    and the string "float64" raised torch's "Invalid device string"."""
+    message = r"^dtype: expected torch.float32 or torch.float64, got "
+    with pytest.raises(InputError, match=message):
+        random_obstacle_scenes(1, size_wh=SMALL, generator=seeded(0), dtype=dtype)
+    with pytest.raises(InputError, match=message):
+        render_obstacle_scenes(torch.tensor([[1.5]]), torch.zeros(1, 1, 2), torch.full((1, 1, 2), 0.5), size_wh=SMALL,
+                               dtype=dtype)
+
+
 @pytest.mark.parametrize(
     ("field", "value", "message"),
     [
