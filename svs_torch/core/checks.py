@@ -127,6 +127,17 @@ def check_image(tensor: torch.Tensor, name: str, check_range: bool = True) -> di
     return bindings
 
 
+def check_stereo_views(left: torch.Tensor, right: torch.Tensor) -> dict[str, int]:
+    """:func:`check_image` of both views of a batch of pairs, of one shape and one dtype (with two, what came out
+    took one view's dtype and its values moved with which view was which); returns the bindings."""
+    dims = check_image(left, "left")
+    check_image(right, "right")
+    check_same_shape(left, "left", right, "right")
+    if right.dtype != left.dtype:
+        raise InputError(f"right: expected the left view's dtype {left.dtype}, got {right.dtype}")
+    return dims
+
+
 def _in_pairs(bad: torch.Tensor) -> str:
     """`` (image 2 of 3)``: which of a batch's images hold the ``bad`` values, so a bulk run can find the file."""
     images = bad.detach().flatten(1).any(1).nonzero().flatten().tolist()

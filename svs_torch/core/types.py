@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import torch
 
 from .checks import (InputError, check_dtype, check_finite, check_finite_where, check_image, check_same_shape,
-                     check_shape)
+                     check_shape, check_stereo_views)
 from .kernels.checks import check_image_hw
 
 __all__ = [
@@ -70,11 +70,7 @@ class StereoBatch:
     disparity_nonoccluded: torch.Tensor | None = None
 
     def __post_init__(self) -> None:
-        dims = check_image(self.left, "left")
-        check_image(self.right, "right")
-        check_same_shape(self.left, "left", self.right, "right")
-        if self.right.dtype != self.left.dtype:  # the differentiable pass followed the right view's in silence
-            raise InputError(f"right: expected the left view's dtype {self.left.dtype}, got {self.right.dtype}")
+        dims = check_stereo_views(self.left, self.right)  # one dtype: the differentiable pass followed the right's
         b = dims["B"]
         if min(dims["H"], dims["W"]) < 1:
             raise InputError(f"left: expected images of at least 1x1 pixels, got {dims['W']}x{dims['H']} (WxH)")

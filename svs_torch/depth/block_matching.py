@@ -10,7 +10,7 @@ from dataclasses import replace
 
 import torch
 
-from ..core.checks import InputError, check_dtype, check_image, check_instance, check_same_shape, check_shape
+from ..core.checks import InputError, check_dtype, check_instance, check_shape, check_stereo_views
 from ..core.kernels.checks import as_integer_tensor, check_counts, check_image_hw, check_nonempty, check_row_fill
 from ..core.mask_reductions import any_along
 from . import kernels
@@ -230,9 +230,7 @@ def _check_pair(left: torch.Tensor, right: torch.Tensor, config: DenseConfig) ->
     # Values in [0, 1]: then the levels are whole numbers within ±255 and every SAD sum is exact, in the C
     # kernel's running window sums as in the torch path's box sums; an inf, a NaN or a huge value would make
     # inf − inf or round-off of the running sums where the box sums give another value. One aminmax per image.
-    dims = check_image(left, "left")
-    check_image(right, "right")
-    check_same_shape(left, "left", right, "right")
+    dims = check_stereo_views(left, right)
     check_nonempty(left, "left")
     check_instance(config, "config", DenseConfig)
     return dims["B"]

@@ -442,6 +442,22 @@ def test_argument_errors():
         dense_disparity_over_regions(image, image, torch.ones(1, 1, 8, 8, dtype=torch.bool), (0, 4))
 
 
+def test_views_of_two_dtypes_are_refused_by_every_dense_entry():
+    """A library user's audit: estimate_dense_disparity took a float64 left view with a float32 right one, its map
+    in the left view's dtype and its values 1e-6 apart with the views' order swapped; a StereoBatch already refused
+    such a pair, every dense entry now does too."""
+    image = torch.rand(1, 1, 16, 16)
+    mask = torch.ones(1, 1, 16, 16, dtype=torch.bool)
+    calls = (lambda l, r: estimate_dense_disparity(l, r, mask), lambda l, r: block_match_sad(l, r, 0, 4),
+             lambda l, r: soft_block_match(l, r, 0, 4, 1.0),
+             lambda l, r: dense_disparity_over_regions(l, r, mask, DisparityRange(torch.tensor([0]), 4)))
+    for call in calls:
+        for left, right in ((image.double(), image), (image, image.double())):
+            with pytest.raises(InputError, match=f"^right: expected the left view's dtype {left.dtype}, got "
+                                                 f"{right.dtype}$"):
+                call(left, right)
+
+
 def test_search_range_per_object_keeps_a_small_far_object():
     """Pooled percentiles cut a small object's disparities as outliers of a big one; per-object groups do not."""
     from svs_torch.depth.search_range import disparity_search_range
