@@ -20,7 +20,8 @@ from __future__ import annotations
 
 import torch
 
-from ..core.checks import InputError, check_dtype, check_finite, check_percentiles, check_real, check_shape
+from ..core.checks import (InputError, check_dtype, check_finite, check_instance, check_percentiles, check_real,
+                           check_shape)
 from ..core.kernels.checks import check_image_hw
 from ..geometry.rectification import map_points
 from .depth_types import (Accuracy, DepthConfig, DepthResult, Disparities, NearestObstacle, ObjectDepths, ObstacleSide,
@@ -304,6 +305,7 @@ def estimate_depth(points_left: torch.Tensor, points_right: torch.Tensor, inlier
     docstring); masks, counts, slots and sides are not."""
     if (labels is None) != (region_labels is None):
         raise InputError("region_labels: expected it together with labels (both or neither)")
+    check_instance(config, "config", DepthConfig)  # a dict failed on its first field, deep in the statistics
     check_dtype(inliers, "inliers", "bool")  # (rectified_disparity would name it 'valid')
     disparities = rectified_disparity(points_left, points_right, inliers, H_left, H_right)
     depths = point_depths(disparities.disparity_px, disparities.valid, focal_px, baseline_m, doffs_px)

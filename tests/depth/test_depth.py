@@ -407,6 +407,9 @@ def test_input_errors():
     with pytest.raises(InputError, match="region_labels: expected it together with labels"):
         estimate_depth(points, points, torch.ones(2, 5, dtype=torch.bool), 500.0, 0.1,
                        labels=torch.zeros(2, 1, 4, 4, dtype=torch.int64))
+    # A library user's audit: a dict as the config raised "'dict' object has no attribute 'percentiles'".
+    with pytest.raises(InputError, match="^config: expected a DepthConfig, got dict$"):
+        estimate_depth(points, points, torch.ones(2, 5, dtype=torch.bool), 500.0, 0.1, config={})
     with pytest.raises(InputError, match=r"percentiles: expected \(low, high\) with 0 <= low <= high <= 100"):
         estimate_range(torch.zeros(2, 5), torch.ones(2, 5, dtype=torch.bool), 500.0, 0.1, percentiles=(90, 10))
     with pytest.raises(InputError, match=r"labels: expected \(B, 1, H, W\)"):
