@@ -55,13 +55,14 @@ def _errors(error: torch.Tensor, mask: torch.Tensor, correct: torch.Tensor | Non
 
 
 def disparity_map_errors(disparity_px: torch.Tensor, valid: torch.Tensor, truth_px: torch.Tensor,
-                         truth_valid: torch.Tensor, mask: torch.Tensor) -> DisparityErrors:
+                         truth_valid: torch.Tensor, mask: torch.Tensor | None = None) -> DisparityErrors:
     """Errors of any dense disparity map ``(B, 1, H, W)`` (the pipeline's, or a rival's such as ``StereoBM``'s)
-    against the GT ``truth_px`` where ``mask``, the map's ``valid`` and ``truth_valid`` all hold (bool maps of
-    the same shape). Only ``median_px`` carries gradients (to ``disparity_px`` and ``truth_px`` at the median
-    pixel); the shares and counts are thresholds and sums of bools."""
+    against the GT ``truth_px`` where ``mask`` (None: every pixel, as in
+    :func:`~svs_torch.evaluation.measure_stereo_metrics`), the map's ``valid`` and ``truth_valid`` all hold (bool
+    maps of the same shape). Only ``median_px`` carries gradients (to ``disparity_px`` and ``truth_px`` at the
+    median pixel); the shares and counts are thresholds and sums of bools."""
     _check_inputs(disparity_px, valid, truth_px, truth_valid, mask, None)  # each argument by its own name
-    compared = mask & valid & truth_valid
+    compared = valid & truth_valid if mask is None else mask & valid & truth_valid
     # A NaN compared gave a NaN median and counted as wrong at every threshold, in silence (measure_stereo_metrics
     # names it): named as there.
     check_finite_where(disparity_px, "disparity_px", compared, "valid")

@@ -153,6 +153,22 @@ def test_disparity_map_errors_name_a_nan_where_both_maps_are_known():
     errors = disparity_map_errors(estimate, unread, truth, known, known)
     assert errors.count.tolist() == [20, 19] and errors.median_px.tolist() == [0.0, 0.0]
 
+
+def test_disparity_map_errors_without_a_mask_compare_every_pixel_both_maps_know():
+    """A library user's audit: mask=None, as measure_stereo_metrics takes it, passed the checks and then failed with
+    "unsupported operand type(s) for &: 'NoneType' and 'Tensor'"; it now means every pixel, as there."""
+    truth = torch.full((2, 1, 4, 5), 3.0)
+    known = torch.ones(2, 1, 4, 5, dtype=torch.bool)
+    estimate = truth + torch.linspace(0.0, 3.9, 20).view(1, 1, 4, 5)
+    unread = known.clone()
+    unread[1, 0, 0] = False
+    everywhere = disparity_map_errors(estimate, unread, truth, known)
+    masked = disparity_map_errors(estimate, unread, truth, known, known)
+    for name in ("median_px", "within_1px", "within_2px", "within_3px", "count"):
+        assert torch.equal(getattr(everywhere, name), getattr(masked, name)), name
+    assert everywhere.count.tolist() == [20, 15]
+
+
 def test_nominal_calibration_only_for_pairs_without_one(data_dir):
     cones = load_stereo_pair(data_dir / "middlebury_2003_quarter" / "Cones")
     teddy = load_stereo_pair(data_dir / "middlebury_2003_quarter" / "Teddy")
