@@ -1,9 +1,11 @@
-"""Every ``>>>`` example in the package's docstrings runs and prints what it shows (nothing else ran them)."""
+"""Every ``>>>`` example in the package's docstrings runs and prints what it shows (nothing else ran them), and the
+statuses' docstrings, what help() shows of them, say what each value means."""
 
 from __future__ import annotations
 
 import doctest
 import importlib
+import re
 from pathlib import Path
 
 import svs_torch
@@ -28,3 +30,16 @@ def test_every_docstring_example_runs_and_prints_what_it_shows():
         if result.failed:
             failed.append(f"{name}: {result.failed} of {result.attempted} failed")
     assert attempted > 0 and not failed, "\n".join(failed)
+
+
+def test_help_of_every_status_says_what_each_value_means():
+    """A library user's audit: ``help(svs_torch.PipelineStatus)`` (and the other per-pair statuses') listed the
+    values' names and numbers only, their meanings being source comments that help() never shows."""
+    from svs_torch import FundamentalStatus, PipelineStatus, SegmentationStatus
+    from svs_torch.depth import ObstacleSide
+    from svs_torch.geometry.rectification import RectificationStatus
+
+    for status in (PipelineStatus, FundamentalStatus, SegmentationStatus, RectificationStatus, ObstacleSide):
+        doc = " ".join(status.__doc__.replace("−", "-").split())
+        for member in status:
+            assert re.search(rf"\b{member.name} \({member.value}\)[:,]? \w", doc), f"{status.__name__}.{member.name}"

@@ -226,12 +226,15 @@ class SegmentationStatus(enum.IntEnum):
 
     A full-foreground mask needs every pixel above Otsu's threshold, which only a one-level image gives
     (the opening never adds foreground): that case is ``UNIFORM_IMAGE``.
+
+    Values:
+        OK (0): at least one region kept.
+        UNIFORM_IMAGE (1): the image has a single gray level: Otsu has no split (OpenCV then thresholds at 0).
+        NO_FOREGROUND (2): no foreground pixel survives threshold and opening: no obstacle region.
     """
 
     OK = 0
-    #: The image has a single gray level: Otsu has no split (OpenCV then thresholds at 0).
     UNIFORM_IMAGE = 1
-    #: No foreground pixel survives threshold and opening: no obstacle region.
     NO_FOREGROUND = 2
 
 
@@ -362,14 +365,18 @@ class Matches:
 
 
 class FundamentalStatus(enum.IntEnum):
-    """Per-pair outcome of the fundamental-matrix stage; stored as int64 in tensors."""
+    """Per-pair outcome of the fundamental-matrix stage; stored as int64 in tensors.
+
+    Values:
+        OK (0): F found, with at least the inliers the caller asked for.
+        TOO_FEW_MATCHES (1): fewer than 7 valid correspondences: no minimal sample exists.
+        DEGENERATE (2): every hypothesis was degenerate (collinear or repeated points, no real root of the cubic).
+        TOO_FEW_INLIERS (3): a model was found, but it has fewer inliers than the minimum the caller asked for.
+    """
 
     OK = 0
-    #: Fewer than 7 valid correspondences: no minimal sample exists.
     TOO_FEW_MATCHES = 1
-    #: Every hypothesis was degenerate (collinear or repeated points, no real root of the cubic).
     DEGENERATE = 2
-    #: A model was found, but it has fewer inliers than the minimum the caller asked for.
     TOO_FEW_INLIERS = 3
 
 

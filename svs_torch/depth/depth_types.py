@@ -20,9 +20,14 @@ __all__ = [
 
 class ObstacleSide(enum.IntEnum):
     """Which third of the image width an obstacle's centroid falls in, or the centre for one that reaches across the
-    middle column (in the walker's path); stored as int64 in tensors."""
+    middle column (in the walker's path); stored as int64 in tensors.
 
-    NONE = -1  # no obstacle (padding slot, or no valid object for the nearest)
+    Values:
+        NONE (−1): no obstacle (padding slot, or no valid object for the nearest).
+        LEFT (0), CENTRE (1), RIGHT (2): the left, middle or right third of the left view.
+    """
+
+    NONE = -1
     LEFT = 0
     CENTRE = 1
     RIGHT = 2

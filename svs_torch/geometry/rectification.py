@@ -48,18 +48,18 @@ _LSTSQ_TOLERANCE = 1e-12
 
 
 class RectificationStatus(enum.IntEnum):
-    """Per-pair outcome of :func:`rectify_uncalibrated`; stored as int64 in tensors."""
+    """Per-pair outcome of :func:`rectify_uncalibrated`; stored as int64 in tensors. Values: OK (0) both homographies
+    found, within the limits; NOT_ENOUGH_INLIERS (1) fewer than ``min_inliers`` inlier correspondences; DEGENERATE
+    (2) F has rank < 2 or is not finite (a failed RANSAC leaves zeros), or the ``"hartley"`` fit is singular;
+    EPIPOLE_IN_IMAGE (3) an epipole lies in the image, or so close that the line sent to infinity crosses it (``w ≤ 0``
+    at a corner): the warp would split the image (forward motion, strongly converging cameras); DISTORTED (4) a
+    homography would flip the image, scale its area at a corner or the centre by more than ``max_area_scale`` (or
+    less than its inverse), or rotate it by more than ``max_rotation_deg``."""
 
     OK = 0
-    #: Fewer than ``min_inliers`` inlier correspondences.
     NOT_ENOUGH_INLIERS = 1
-    #: F has rank < 2 or is not finite (a failed RANSAC leaves zeros), or the ``"hartley"`` fit is singular.
     DEGENERATE = 2
-    #: An epipole lies in the image, or so close that the line sent to infinity crosses it (``w ≤ 0`` at a
-    #: corner): the warp would split the image (forward motion, strongly converging cameras).
     EPIPOLE_IN_IMAGE = 3
-    #: A homography would flip the image, scale its area at a corner or the centre by more than
-    #: ``max_area_scale`` (or less than its inverse), or rotate it by more than ``max_rotation_deg``.
     DISTORTED = 4
 
 

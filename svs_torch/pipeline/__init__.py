@@ -1,6 +1,6 @@
 """The pipeline: the stages composed, one batch of pairs from images to obstacle distances.
 
-``config`` (:class:`PipelineConfig`, :class:`PipelineStatus`, and :class:`PipelineResult`, defined in ``result``),
+``config`` (:class:`PipelineConfig`; :class:`PipelineStatus` and :class:`PipelineResult`, defined in ``result``),
 ``stages`` (each stage as the pipeline calls it), ``ranging`` (the rectification choice and the dense depth with its
 retry), ``run`` (:func:`estimate_obstacle_depth`: segmentation → features → matching → RANSAC → rectification →
 dense depth, each batch run as groups of one size), ``exposure`` (the two views' exposures matched),

@@ -1,10 +1,9 @@
-"""The pipeline's options (:class:`PipelineConfig`: one config per stage and the choices between them) and its
-per-pair status (:class:`PipelineStatus`: the stage that stopped); its result is in :mod:`.result`, re-exported.
+"""The pipeline's options (:class:`PipelineConfig`: one config per stage and the choices between them); its result
+and per-pair status (:class:`PipelineStatus`: the stage that stopped) are in :mod:`.result`, re-exported.
 """
 
 from __future__ import annotations
 
-import enum
 import math
 from dataclasses import dataclass, field, replace
 from typing import Literal
@@ -20,7 +19,7 @@ from ..geometry.rectification import RectificationConfig
 from ..geometry.row_alignment import RowAlignmentConfig
 from ..segmentation.segment import SegmentationConfig
 from .exposure import RETRY_MIN_CHANGE, ExposureConfig
-from .result import PipelineResult  # noqa: F401  (re-exported: its home until the module grew past 400 lines)
+from .result import PipelineResult, PipelineStatus  # noqa: F401  (re-exported: their home until it passed 400 lines)
 
 __all__ = ["MIN_CORRESPONDENCES", "PipelineConfig", "PipelineResult", "PipelineStatus"]
 
@@ -29,19 +28,6 @@ __all__ = ["MIN_CORRESPONDENCES", "PipelineConfig", "PipelineResult", "PipelineS
 MIN_CORRESPONDENCES = 7
 #: The largest smoothing σ (pixels): its Gaussian is 6σ + 1 wide; σ 1e9 ran for hours, 1e4 took 8 s at 160×120.
 MAX_SIGMA_PX = 1000
-
-
-class PipelineStatus(enum.IntEnum):
-    """Per-pair outcome of the whole pipeline; the first stage that failed names it."""
-
-    OK = 0
-    NO_OBJECTS = 1  # segmentation kept no region (blank, saturated or textureless image)
-    TOO_FEW_KEYPOINTS = 2  # fewer than 7 keypoints in the left or right image
-    TOO_FEW_MATCHES = 3  # fewer than 7 matches
-    RANSAC_FAILED = 4  # every sample degenerate, or too few inliers
-    DEGENERATE_RECTIFICATION = 5  # epipole in the image, singular F, or a wildly distorting homography
-    NO_POSITIVE_DISPARITY = 6  # no inlier (DepthConfig.min_in_front_share: or too few) with d + doffs > 0
-    NO_DENSE_DEPTH = 7  # dense rule: no kept object has enough valid dense disparities (flat, occluded)
 
 
 @dataclass(frozen=True)

@@ -1,8 +1,9 @@
-"""The pipeline's per-pair result (:class:`PipelineResult`), apart from its options (:mod:`.config`, which
-re-exports it)."""
+"""The pipeline's per-pair result (:class:`PipelineResult`) and status (:class:`PipelineStatus`), apart from its
+options (:mod:`.config`, which re-exports both)."""
 
 from __future__ import annotations
 
+import enum
 from dataclasses import dataclass
 
 import torch
@@ -15,7 +16,32 @@ from ..features.surf import SurfFeatures
 from ..geometry.matched_points import MatchedPoints
 from ..geometry.rectification import Rectification
 
-__all__ = ["PipelineResult"]
+__all__ = ["PipelineResult", "PipelineStatus"]
+
+
+class PipelineStatus(enum.IntEnum):
+    """Per-pair outcome of the whole pipeline; the first stage that failed names it. ``result.status`` holds the
+    values as int64 ``(B,)``: ``PipelineStatus(int(result.status[i])).name`` names pair i's.
+
+    Values:
+        OK (0): ranged.
+        NO_OBJECTS (1): segmentation kept no region (blank, saturated or textureless image).
+        TOO_FEW_KEYPOINTS (2): fewer than 7 keypoints in the left or right image.
+        TOO_FEW_MATCHES (3): fewer than 7 matches.
+        RANSAC_FAILED (4): every sample degenerate, or too few inliers.
+        DEGENERATE_RECTIFICATION (5): epipole in the image, singular F, or a wildly distorting homography.
+        NO_POSITIVE_DISPARITY (6): no inlier (``DepthConfig.min_in_front_share``: or too few) with d + doffs > 0.
+        NO_DENSE_DEPTH (7): dense rule: no kept object has enough valid dense disparities (flat, occluded).
+    """
+
+    OK = 0
+    NO_OBJECTS = 1
+    TOO_FEW_KEYPOINTS = 2
+    TOO_FEW_MATCHES = 3
+    RANSAC_FAILED = 4
+    DEGENERATE_RECTIFICATION = 5
+    NO_POSITIVE_DISPARITY = 6
+    NO_DENSE_DEPTH = 7
 
 
 @dataclass(frozen=True)
