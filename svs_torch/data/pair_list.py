@@ -119,7 +119,7 @@ class PairSource:
     @property
     def loaded_name(self) -> str:
         """The name :func:`load_pair_source` gives the pair's batch, known without loading it: the :attr:`label`,
-        else a scene's as its loader names it from its file names alone (:func:`~svs_torch.data.scene_name`:
+        else a scene's as its loader names it from its file names alone (:func:`~svs_torch.data.datasets.scene_name`:
         ``eval3/Teddy``, not the folders' ``middlebury_eval3_Q/Teddy``), else :attr:`name`. What a pair's rows are
         named by whether it loads or not."""
         return scene_name(self.left) if self.scene and self.label is None and self.problem is None else self.name
