@@ -71,7 +71,10 @@ def with_nominal_calibration(batch: StereoBatch) -> StereoBatch:
     doffs)."""
     check_instance(batch, "batch", StereoBatch)
     keep = batch.calibrated
-    own_rig = keep | torch.tensor([name.startswith(("kitti", "opencv/")) for name in batch.names], device=keep.device)
+    # A batch may have no names (StereoBatch.from_images' default): none of its pairs is then KITTI's or Aloe's.
+    names = batch.names or ("",) * batch.batch_size
+    own_rig = keep | torch.tensor([name.startswith(("kitti", "opencv/")) for name in names], dtype=torch.bool,
+                                  device=keep.device)
     return dataclasses.replace(
         batch,
         focal_px=torch.where(own_rig, batch.focal_px, torch.full_like(batch.focal_px, NOMINAL_FOCAL_PX)),

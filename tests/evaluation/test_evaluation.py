@@ -169,6 +169,19 @@ def test_disparity_map_errors_without_a_mask_compare_every_pixel_both_maps_know(
     assert everywhere.count.tolist() == [20, 15]
 
 
+def test_nominal_calibration_of_a_batch_without_names_or_pairs():
+    """A library user's audit: a batch made by StereoBatch.from_images (no names, its default) failed with torch's
+    "The size of tensor a (2) must match the size of tensor b (0)", and an empty one (batch.select([])) with
+    '"bitwise_or_cpu" not implemented for 'Float''. Unnamed pairs are neither KITTI's nor Aloe's."""
+    image = torch.rand(2, 1, 8, 8)
+    batch = StereoBatch.from_images(image, image, 500.0, 0.1, calibrated=torch.tensor([True, False]))
+    nominal = with_nominal_calibration(batch)
+    assert nominal.focal_px.tolist() == pytest.approx([500.0, 3740 / 3])
+    assert nominal.baseline_m.tolist() == pytest.approx([0.1, 0.16]) and nominal.calibrated.tolist() == [True, True]
+    empty = with_nominal_calibration(batch.select([]))
+    assert empty.batch_size == 0 and empty.calibrated.dtype == torch.bool
+
+
 def test_nominal_calibration_only_for_pairs_without_one(data_dir):
     cones = load_stereo_pair(data_dir / "middlebury_2003_quarter" / "Cones")
     teddy = load_stereo_pair(data_dir / "middlebury_2003_quarter" / "Teddy")
