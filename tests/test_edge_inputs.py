@@ -285,7 +285,7 @@ def test_the_library_calls_an_api_audit_found_unchecked():
         ("keep: expected 'largest', 'nearest' or 'nearest_first', got 'Largest'",  # ran as "nearest_first"
          lambda: keep_regions(labels, regions, 1, "Largest")),
         ("num_keep: expected an int from 0 to 255, got -1", lambda: keep_largest_regions(labels, regions, -1)),  # kept L - 1
-        ("labels: expected a int tensor", lambda: keep_regions(labels.float(), regions, 1)),
+        ("labels: expected an int tensor", lambda: keep_regions(labels.float(), regions, 1)),
         ("nearness: expected (1, 2), got (3)", lambda: keep_regions(labels, regions, 1, "nearest",
                                                                     nearness=torch.zeros(3))),
         ("mask: expected a bool tensor", lambda: masked_lower_median(torch.rand(2, 5), torch.ones(2, 5))),

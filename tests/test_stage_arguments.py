@@ -59,7 +59,7 @@ def test_gather_matched_points_refuses_indices_past_the_right_keypoints():
     # With no right keypoints, a match was to the point (0, 0).
     with pytest.raises(InputError, match=r"indices in \[0, 0\) or -1"):
         gather_matched_points(xy_left, torch.zeros(1, 0, 2), Matches(torch.tensor([[0, -1, -1]]), torch.zeros(1, 3)))
-    with pytest.raises(InputError, match="matches.idx: expected a int tensor, got torch.float32"):
+    with pytest.raises(InputError, match="matches.idx: expected an int tensor, got torch.float32"):
         gather_matched_points(xy_left, xy_right, Matches(torch.zeros(1, 3), torch.zeros(1, 3)))
     points = gather_matched_points(xy_left, xy_right, Matches(torch.tensor([[1, -1, 0]]), torch.zeros(1, 3)))
     assert points.valid.tolist() == [[True, False, True]] and torch.equal(points.right[0, 0], xy_right[0, 1])
@@ -164,7 +164,7 @@ def test_row_alignment_refuses_nan_points_and_an_empty_size():
         fit_row_alignment(points, bad, valid, size)
     with pytest.raises(InputError, match=r"image_hw: expected positive \(height, width\) per pair, got \[\[0, 0\]\]"):
         fit_row_alignment(points, points, valid, torch.tensor([[0, 0]]))
-    with pytest.raises(InputError, match="image_hw: expected a int tensor"):
+    with pytest.raises(InputError, match="image_hw: expected an int tensor"):
         fit_row_alignment(points, points, valid, size.float())
     valid[0, 3] = False  # a NaN point in a padding row is not looked at
     assert fit_row_alignment(points, bad, valid, size) is not None

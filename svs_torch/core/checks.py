@@ -80,6 +80,11 @@ def check_float_dtype(dtype: object, name: str = "dtype") -> None:
         raise InputError(f"{name}: expected torch.float32 or torch.float64, got {dtype!r}")
 
 
+def _a(word: str) -> str:
+    """The article an error's "expected ..." takes before ``word``: "an int tensor", "an ObjectDepths"."""
+    return "an" if word[:1].lower() in "aeio" else "a"
+
+
 def check_dtype(tensor: torch.Tensor, name: str, kinds: str) -> None:
     """Check the dtype family: ``"float"`` (float32 or float64), ``"bool"``, ``"int"`` (any integer), or several
     joined by ``|``."""
@@ -94,7 +99,7 @@ def check_dtype(tensor: torch.Tensor, name: str, kinds: str) -> None:
     if family == "half" and "float" in allowed:
         raise InputError(f"{name}: expected a float32 or float64 tensor, got {dtype}")
     if family not in allowed:
-        raise InputError(f"{name}: expected a {' or '.join(allowed)} tensor, got {dtype}")
+        raise InputError(f"{name}: expected {_a(allowed[0])} {' or '.join(allowed)} tensor, got {dtype}")
 
 
 def check_dtypes(**arguments: tuple[torch.Tensor, str]) -> None:
@@ -150,7 +155,7 @@ def check_instance(value: object, name: str, kind: type, fields: tuple[str, ...]
     function that reads only those fields also takes a stand-in, as hand-made test cases are)."""
     if isinstance(value, kind) or (fields and all(hasattr(value, field) for field in fields)):
         return
-    raise InputError(f"{name}: expected a {kind.__name__}, got {type(value).__name__}")
+    raise InputError(f"{name}: expected {_a(kind.__name__)} {kind.__name__}, got {type(value).__name__}")
 
 
 def check_same_shape(a: torch.Tensor, name_a: str, b: torch.Tensor, name_b: str) -> None:

@@ -7,8 +7,8 @@ import torch
 
 from svs_torch import SVS_CAMERA, InputError, StereoBatch, SVSCamera
 from svs_torch.core.camera import parse_size
-from svs_torch.core.checks import check_shape
-from svs_torch.depth import estimate_range, labelled_quantile, masked_quantile, point_depths
+from svs_torch.core.checks import check_dtype, check_instance, check_shape
+from svs_torch.depth import ObjectDepths, estimate_range, labelled_quantile, masked_quantile, point_depths
 from svs_torch.features import extract_surf_features
 from svs_torch.geometry.matching import match_sad
 from svs_torch.geometry.ransac import estimate_fundamental_ransac
@@ -132,3 +132,21 @@ def test_a_meta_device_tensor_is_named_by_every_stage(call, name):
     not on the expected device cpu!"), naming no argument; check_dtype now refuses it by name."""
     with pytest.raises(InputError, match=f"^{name}: expected a tensor with values, got one on the meta device$"):
         call()
+
+
+def test_an_error_takes_the_article_its_expectation_needs():
+    """A library user's audit: match_sad's Laplacian signs as floats said "expected a int tensor", and a wrong
+    container "expected a ObjectDepths"."""
+    from svs_torch.core.checks import check_dtype, check_instance
+    from svs_torch.depth import ObjectDepths
+
+    with pytest.raises(InputError, match=r"^labels: expected an int tensor, got torch.float32$"):
+        check_dtype(torch.zeros(1), "labels", "int")
+    with pytest.raises(InputError, match=r"^x: expected an int or bool tensor, got torch.float32$"):
+        check_dtype(torch.zeros(1), "x", "int|bool")
+    with pytest.raises(InputError, match=r"^mask: expected a bool tensor, got torch.float32$"):
+        check_dtype(torch.zeros(1), "mask", "bool")
+    with pytest.raises(InputError, match=r"^objects: expected an ObjectDepths, got int$"):
+        check_instance(1, "objects", ObjectDepths)
+    with pytest.raises(InputError, match=r"^batch: expected a StereoBatch, got int$"):
+        check_instance(1, "batch", StereoBatch)

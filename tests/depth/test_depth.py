@@ -133,7 +133,7 @@ def test_masked_quantile_matches_numpy_per_row(generator):
 ])
 def test_kept_region_lower_median_names_labels_that_are_not_int(labels_dtype, kept_dtype, name):
     labels = torch.tensor([[1, 2], [2, 0]]).view(1, 1, 2, 2)
-    with pytest.raises(InputError, match=f"^{name}: expected a int tensor"):
+    with pytest.raises(InputError, match=f"^{name}: expected an int tensor"):
         kept_region_lower_median(torch.rand(1, 1, 2, 2), torch.ones(1, 1, 2, 2, dtype=torch.bool),
                                  labels.to(labels_dtype), torch.tensor([[2, 1]]).to(kept_dtype))
 

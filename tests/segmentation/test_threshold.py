@@ -119,7 +119,7 @@ def test_threshold_binary_refuses_a_level_outside_the_gray_levels():
     image = torch.rand(1, 1, 8, 8, generator=torch.Generator().manual_seed(0))
     threshold, level = otsu_threshold(image)
     assert 0 < threshold_binary(image, level).sum() < 64
-    with pytest.raises(InputError, match="level: expected a int tensor, got torch.float32"):
+    with pytest.raises(InputError, match="level: expected an int tensor, got torch.float32"):
         threshold_binary(image, threshold)
     for bad in (300, -1):
         with pytest.raises(InputError, match=rf"level: expected gray levels from 0 to 255, got \[{bad}\]"):
