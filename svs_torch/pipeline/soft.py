@@ -41,17 +41,17 @@ import dataclasses
 
 import torch
 
-from ..core.checks import check_dtype, check_dtypes
+from ..core.checks import check_dtype, check_dtypes, check_shape
 from ..core.numerics import per_pair
 from ..depth.block_matching import fill_invalid_rows
 from ..depth.cost_volume import prefilter_xsobel
 from ..depth.dense import working_factor, working_window
 from ..depth.dense_config import DenseConfig, DenseDisparity
-from ..depth.dense_objects import range_from_objects
-from ..depth.depth_types import DepthResult, NearestObstacle, ObjectDepths, RangeEstimate
+from ..depth.depth_types import DepthResult, ObjectDepths
 from ..depth.pooling import mean_pool
 from ..depth.winner import equiangular_offset
 from ..geometry.rectification import warp_rectified, warp_views
+from .soft_slots import nearest_at_hard_slot, range_at_hard_slots
 from .stages import warp_labels
 
 __all__ = ["BAND_HALF_WIDTH", "band_mean", "differentiable_depth", "quantize_straight_through", "soft_dense_depth",
@@ -187,8 +187,12 @@ def _soft_disparity(left: torch.Tensor, right: torch.Tensor, dense: DenseDispari
 def band_mean(values: torch.Tensor, weights: torch.Tensor, band: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Weighted mean of ``values`` ``(B, P)`` over each band ``(B, M, P)`` bool with ``weights`` ``(B, P)``:
     ``(B, M)`` and whether the band had any weight. Differentiable w.r.t. values and weights (the band is a
-    constant). ``values`` float32 or float64: float16's sums overflowed (20 000 depths of 8 m: a mean of inf)."""
-    check_dtype(values, "values", "float")
+    constant). ``values`` float32 or float64: float16's sums overflowed (20 000 depths of 8 m: a mean of inf).
+    Mismatched shapes or a float band failed in torch's broadcasting or ``where`` (an audit): refused by name."""
+    b, p = check_shape(values, "values", ["B", "P"]).values()
+    check_shape(weights, "weights", [b, p])
+    check_shape(band, "band", [b, "M", p])
+    check_dtypes(values=(values, "float"), band=(band, "bool"))
     members = band.to(values.dtype) * weights.unsqueeze(1)
     total = members.sum(dim=-1)
     some = total > 0
@@ -341,38 +345,6 @@ def soft_dense_depth(left: torch.Tensor, right: torch.Tensor, labels: torch.Tens
                                              valid=valid)
     ranged = range_at_hard_slots(hard.objects, soft, focal_px, baseline_m, doffs_px)
     return DepthResult(hard.disparities, hard.points, ranged, soft, nearest_at_hard_slot(hard.nearest, soft))
-
-
-def range_at_hard_slots(hard: ObjectDepths, objects: ObjectDepths, focal_px: torch.Tensor, baseline_m: torch.Tensor,
-                        doffs_px: torch.Tensor) -> RangeEstimate:
-    """R_min / R_max of the objects the hard pipeline ranged nearest and farthest (chosen on ``hard``'s medians and
-    validity), their depths taken from the soft ``objects`` where that object's bands have members (else the hard
-    ones, straight-through), as :func:`nearest_at_hard_slot` takes the nearest. Why: chosen again on the soft
-    medians, R_min named the other object of a near tie and its gradient trained it (found by an audit: 1.500153
-    against 1.500189 m, the slot the hard pipeline and ``nearest`` did not name)."""
-    median = torch.where(objects.valid, objects.depth_median_m, hard.depth_median_m.to(objects.depth_median_m.dtype))
-    taken = dataclasses.replace(objects, depth_median_m=median, valid=hard.valid,
-                                num_valid_px=hard.num_valid_px, num_inliers=hard.num_inliers)
-    return range_from_objects(taken, focal_px, baseline_m, doffs_px, order_by=hard.depth_median_m)
-
-
-def nearest_at_hard_slot(hard: NearestObstacle, objects: ObjectDepths) -> NearestObstacle:
-    """The hard pipeline's nearest obstacle (its slot, side and validity: a discrete decision, which this pass
-    never makes again) with its depth and surface taken from the soft ``objects`` at that slot, where that slot's
-    band has members (else the hard values, straight-through). Why: choosing the nearest again on the soft medians
-    flipped the warned side when two objects were within a few hundredths of a millimetre (found by an audit:
-    1 of 96 near ties), and the gradient then trained the other object."""
-    slot = hard.slot.clamp(min=0).unsqueeze(1)
-    soft_valid = objects.valid.gather(1, slot).squeeze(1) if objects.valid.shape[1] else torch.zeros_like(hard.valid)
-    taken = hard.valid & soft_valid
-
-    def at_slot(values: torch.Tensor, fallback: torch.Tensor | None) -> torch.Tensor | None:
-        if fallback is None or values.shape[1] == 0:
-            return fallback
-        return torch.where(taken, values.gather(1, slot).squeeze(1), fallback.to(values.dtype))
-
-    return NearestObstacle(hard.slot, at_slot(objects.depth_median_m, hard.depth_m), hard.side, hard.valid,
-                           at_slot(objects.depth_low_m, hard.surface_m))
 
 
 def differentiable_depth(left: torch.Tensor, right: torch.Tensor, labels: torch.Tensor,

@@ -117,6 +117,18 @@ def test_band_mean_refuses_values_it_cannot_sum(dtype):
     assert band_mean(values.float(), torch.ones(1, 20000), band)[0].tolist() == [[8.0]]
 
 
+@pytest.mark.parametrize("weights, band, message", [
+    (torch.ones(2, 8), torch.ones(2, 3, 9, dtype=torch.bool), r"weights: expected \(2, 9\), got \(2, 8\)"),
+    (torch.ones(2, 9), torch.ones(3, 3, 9, dtype=torch.bool), r"band: expected \(2, M, 9\), got \(3, 3, 9\)"),
+    (torch.ones(2, 9), torch.ones(2, 9, dtype=torch.bool), r"band: expected \(2, M, 9\), got \(2, 9\)"),
+    (torch.ones(2, 9), torch.ones(2, 3, 9), "band: expected a bool tensor, got torch.float32")])
+def test_band_mean_names_a_mismatched_argument(weights, band, message):
+    """Mismatched shapes failed in torch's broadcasting, a float band in torch.where, and a band without its M axis
+    gave a (2, 2) mean in silence (an audit): each is refused by the argument's name."""
+    with pytest.raises(InputError, match=message):
+        band_mean(torch.ones(2, 9), weights, band)
+
+
 @pytest.mark.parametrize("argument", ["half images", "float winner", "float pixels"])
 def test_subpixel_disparity_refuses_what_it_cannot_index_or_fit(argument):
     """Was: float16 images were fitted in silence (float16 disparities), and a float winner or pixel index failed
