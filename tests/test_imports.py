@@ -56,11 +56,12 @@ def test_guide_says_a_missing_board_url_without_loading_torch():
 
 def test_results_says_a_store_it_cannot_read_without_loading_torch(tmp_path):
     """'svs-depth results missing.sqlite' loaded torch (2 s) before saying there was no such file (left alone in an
-    earlier stop); a folder likewise. Said at once now, in the words the store itself uses."""
+    earlier stop); a folder likewise. Said at once now, in the words the store itself uses, naming the positional
+    as the usage line shows it."""
     stderr = stderr_without_torch(f"assert main(['results', {str(tmp_path / 'missing.sqlite')!r}]) == 2",
                                   f"assert main(['results', {str(tmp_path)!r}]) == 2")
-    assert f"db: expected a results file, got no file: {tmp_path / 'missing.sqlite'}" in stderr
-    assert f"db: expected a results file, got a folder: {tmp_path}" in stderr
+    assert f"FILE.sqlite: expected a results file, got no file: {tmp_path / 'missing.sqlite'}" in stderr
+    assert f"FILE.sqlite: expected a results file, got a folder: {tmp_path}" in stderr
 
 
 def test_public_names_load_on_first_use():

@@ -7,7 +7,7 @@ import csv
 import sys
 from collections.abc import Sequence
 
-from .common import add_figure_option, check_outputs_apart, dumps_strict, non_negative_int, output_file
+from .common import add_figure_option, check_outputs_apart, dumps_strict, non_negative_int, options_named, output_file
 
 HELP = "summarise, export (CSV) or plot a sweep's results file"
 
@@ -231,6 +231,12 @@ def _unrun(store, summaries: list[dict]) -> tuple[set[str], tuple[int, int]]:
 
 
 def run(args: argparse.Namespace) -> int:
+    # The store's errors named the library's argument, "db: ...", where the usage line shows FILE.sqlite (an audit).
+    with options_named(db="FILE.sqlite"):
+        return _run(args)
+
+
+def _run(args: argparse.Namespace) -> int:
     from ..core.workers import imports_without_collection
     from ..evaluation.store_access import check_store_path
 

@@ -171,9 +171,9 @@ def test_a_store_being_written_read_from_a_folder_that_takes_no_files_says_why(t
     store_folder_not_writable()
     assert main(["results", str(db)]) == 2
     assert capsys.readouterr().err.strip().endswith(
-        f"error: db: cannot read {db} from here yet: rows are still in shared.sqlite-wal (a sweep writing it, or "
-        "one killed), and reading them needs a file made in its folder, which this user cannot write; read it once "
-        "the writer has ended, or copy both files to a folder you can write")
+        f"error: FILE.sqlite: cannot read {db} from here yet: rows are still in shared.sqlite-wal (a sweep writing "
+        "it, or one killed), and reading them needs a file made in its folder, which this user cannot write; read it "
+        "once the writer has ended, or copy both files to a folder you can write")
 
 
 def test_a_pair_whose_path_is_not_utf8_is_refused_by_eval_db_before_the_store_is_made(tmp_path, capsys, data_dir):

@@ -979,12 +979,13 @@ def test_a_device_is_refused_as_a_results_store_before_sqlite_touches_it(data_di
     argv = ["eval", str(data_dir / "middlebury_2001"), "--db", "/dev/null"] if command == "eval" else \
         ["results", "/dev/null"]
     assert main(argv) == 2
-    assert "db: expected a results file, got a device or other special file: /dev/null" in capsys.readouterr().err
+    named = "--db" if command == "eval" else "FILE.sqlite"
+    assert f"{named}: expected a results file, got a device or other special file: /dev/null" in capsys.readouterr().err
     assert journal.exists() == existed
 
 
 @pytest.mark.parametrize("argv, message", [
-    (["results", ""], "svs-depth results: error: db: expected a results file name, got ''"),
+    (["results", ""], "svs-depth results: error: FILE.sqlite: expected a results file name, got ''"),
     (["sweep", "", "--db", "s.sqlite"], "svs-depth sweep: error: SWEEP.toml: expected a sweep file name, got ''"),
 ])
 def test_an_empty_file_name_is_refused_as_such_not_as_the_current_folder(tmp_path, monkeypatch, capsys, argv,
@@ -1007,6 +1008,21 @@ def test_the_stores_errors_name_the_db_option(data_dir, tmp_path, monkeypatch, c
         assert main(argv) == 2
         assert capsys.readouterr().err == f"svs-depth {argv[0]}: error: --db: the folder nodir does not exist\n"
     assert not (tmp_path / "nodir").exists()
+
+
+def test_results_errors_name_the_store_as_the_usage_line_does(tmp_path, capsys):
+    """Found by an audit of the command line: 'svs-depth results' said "db: expected a results file, ...", the
+    library's argument, where its usage line shows the store as FILE.sqlite (eval and sweep name --db)."""
+    from svs_torch.evaluation.store import ResultStore
+
+    not_store, empty = tmp_path / "notes.txt", tmp_path / "empty.sqlite"
+    not_store.write_text("not a store")
+    ResultStore(empty).close()
+    for argv, reason in ((["results", str(tmp_path / "missing.sqlite")], "expected a results file, got no file"),
+                         (["results", str(not_store)], f"{not_store} is not a results store"),
+                         (["results", str(empty), "--figure", str(tmp_path / "f.png")], f"{empty} holds no results")):
+        assert main(argv) == 2
+        assert capsys.readouterr().err.startswith(f"svs-depth results: error: FILE.sqlite: {reason}")
 
 
 @pytest.mark.parametrize("option", ["--csv", "--figure"])
