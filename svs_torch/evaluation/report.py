@@ -322,9 +322,10 @@ def results_figure(store: ResultStore):
     """The results figure (a matplotlib Figure): one panel per swept parameter (mean Eq. (9) accuracy of R_min,
     R_max and objects at each value, averaged over the other parameters) and, filling the rest of the last row (or a
     row of its own, as wide as its scenes need), per-scene bars of the best configuration by object accuracy, zoomed
-    to the data, its legend above them. An Agg canvas of its own, no pyplot: the caller's backend and pyplot's
-    figures are left as they were (an audit of the API's effect on its caller: ``matplotlib.use("Agg")`` here turned a
-    notebook's inline plots off for the rest of its session, and each call left one more figure open in pyplot)."""
+    to the data, its legend above them; the title says where a configuration has no rows or lacks pairs the others
+    have. An Agg canvas of its own, no pyplot: the caller's backend and pyplot's figures are left as they were (an
+    audit of the API's effect on its caller: ``matplotlib.use("Agg")`` here turned a notebook's inline plots off for
+    the rest of its session, and each call left one more figure open in pyplot)."""
     check_instance(store, "store", ResultStore)
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
@@ -350,10 +351,23 @@ def results_figure(store: ResultStore):
         _parameter_axis(figure.add_subplot(grid[number // columns, number % columns]), summaries, configs, key)
     tied = sum(ranked_value(s, "acc_objects_pct") == ranked_value(best, "acc_objects_pct") for s in summaries) - 1
     _scene_bars(figure.add_subplot(grid[row, column:]), store, best, tied)  # the rest of its row: no empty panels
-    count = len(summaries)
-    figure.suptitle(f"{store.path.name}: {count} configuration{'' if count == 1 else 's'}", fontsize=11)
+    # Wrapped to the figure (about 11 characters an inch at 11 pt): one swept parameter's is 10.4 in wide, none's 5.2.
+    title = f"{store.path.name}: {_rows_in_title(summaries, len(configs))}".split("\n")
+    figure.suptitle("\n".join(textwrap.fill(line, int(figure.get_figwidth() * 11)) for line in title), fontsize=11)
     figure.tight_layout()
     return figure
+
+
+def _rows_in_title(summaries: Sequence[dict], recorded: int) -> str:
+    """The figure's title after the store's name: how many configurations have rows, and, as the summary's notes
+    say, where that is fewer than the ``recorded`` ones or some lack pairs the others have, that each mean is over
+    the rows there are (an audit: a stopped sweep's panels averaged over different parts of the grid, unsaid)."""
+    count, short = len(summaries), sum(1 for s in summaries if s.get("pairs_missing"))
+    if count >= recorded and not short:
+        return f"{count} configuration{'' if count == 1 else 's'}"
+    return (f"{count} of {recorded} configurations have rows"
+            + (f", {short} of them not on every pair" if short else "")
+            + "\neach mean is over the rows stored (a sweep stopped before the rest? its command run again fills it)")
 
 
 def pairs_without_rows(store) -> int:

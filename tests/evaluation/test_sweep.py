@@ -1171,6 +1171,28 @@ def test_the_parameter_panels_ticks_are_the_values_as_the_csv_has_them(reference
     assert odd in (tmp_path / "odd.csv").read_text(encoding="utf-8")
 
 
+def test_the_figure_of_a_stopped_sweep_says_its_means_are_over_the_rows_stored(reference, tmp_path):
+    """Found by an audit of the results' numbers: the summary notes configurations without rows and ones that lack
+    pairs the others have, but the figure's panels averaged over whatever had rows (different parts of the grid, or
+    of the pairs) under a title of "N configurations", unsaid."""
+    from svs_torch.evaluation.report import results_figure
+    from svs_torch.evaluation.store import ResultStore
+
+    with ResultStore(reference[1]) as store:
+        assert results_figure(store).get_suptitle() == "reference.sqlite: 3 configurations"
+    db = tmp_path / "stopped.sqlite"
+    with edited_copy(reference, db) as connection:
+        first, last = connection.execute("SELECT min(config_id), max(config_id) FROM results").fetchone()
+        connection.execute("DELETE FROM results WHERE config_id = ?", (last,))
+        connection.execute("DELETE FROM results WHERE config_id = ? AND pair_id = (SELECT min(pair_id) FROM "
+                           "results)", (first,))
+    with ResultStore(db) as store:
+        title = results_figure(store).get_suptitle()
+    assert title.startswith("stopped.sqlite: 2 of 3 configurations have rows, 1 of them not on every pair\n")
+    assert "each mean is over the rows stored" in title
+    assert main(["results", str(db), "--figure", str(tmp_path / "stopped.png")]) == 0
+
+
 def test_the_parameter_panels_never_pass_100_pct(reference, tmp_path):
     """Found by an audit of the results' numbers: a swept parameter without effect (equal means at 99.8 %) had its
     panel autoscaled to 94-105 %, room above the best that no accuracy has."""
