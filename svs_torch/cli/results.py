@@ -232,7 +232,7 @@ def _unrun(store, summaries: list[dict]) -> tuple[set[str], tuple[int, int]]:
 
 def run(args: argparse.Namespace) -> int:
     # The store's errors named the library's argument, "db: ...", where the usage line shows FILE.sqlite (an audit).
-    with options_named(db="FILE.sqlite"):
+    with options_named(db="FILE.sqlite", store="FILE.sqlite"):
         return _run(args)
 
 

@@ -332,7 +332,7 @@ def results_figure(store: ResultStore):
 
     summaries = config_summaries(store)
     if not summaries:
-        raise InputError(f"db: {store.path} holds no results yet")
+        raise InputError(f"store: {store.path} holds no results yet")
     swept = swept_parameters(store)
     # The table's ranking: nominal-calibration means where more pairs were scored with one (ranked_group).
     best = max(summaries, key=lambda s: v if (v := ranked_value(s, "acc_objects_pct")) is not None else -1.0)

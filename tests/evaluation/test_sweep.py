@@ -7,6 +7,7 @@ import contextlib
 import dataclasses
 import json
 import os
+import re
 import shutil
 import signal
 import sqlite3
@@ -1191,6 +1192,19 @@ def test_the_figure_of_a_stopped_sweep_says_its_means_are_over_the_rows_stored(r
     assert title.startswith("stopped.sqlite: 2 of 3 configurations have rows, 1 of them not on every pair\n")
     assert "each mean is over the rows stored" in title
     assert main(["results", str(db), "--figure", str(tmp_path / "stopped.png")]) == 0
+
+
+def test_the_figure_of_a_store_without_rows_names_its_argument(tmp_path):
+    """Found by an audit of the library's errors: results_figure(store) and plot_results(store, path) of a store
+    without rows said "db: ... holds no results yet", an argument neither function has."""
+    from svs_torch.evaluation.report import plot_results, results_figure
+    from svs_torch.evaluation.store import ResultStore
+
+    with ResultStore(tmp_path / "empty.sqlite") as store:
+        said = f"^store: {re.escape(str(tmp_path / 'empty.sqlite'))} holds no results yet$"
+        for call in (lambda: results_figure(store), lambda: plot_results(store, tmp_path / "f.png")):
+            with pytest.raises(InputError, match=said):
+                call()
 
 
 def test_the_parameter_panels_never_pass_100_pct(reference, tmp_path):
