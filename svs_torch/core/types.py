@@ -18,17 +18,8 @@ from .checks import (InputError, check_dtype, check_finite, check_finite_where, 
                      check_shape, check_stereo_views)
 from .kernels.checks import check_image_hw
 
-__all__ = [
-    "FundamentalResult",
-    "FundamentalStatus",
-    "Keypoints",
-    "Matches",
-    "StereoBatch",
-    "RegionProperties",
-    "Segmentation",
-    "StereoSegmentation",
-    "SegmentationStatus",
-]
+__all__ = ["FundamentalResult", "FundamentalStatus", "Keypoints", "Matches", "StereoBatch", "RegionProperties",
+           "Segmentation", "StereoSegmentation", "SegmentationStatus"]
 
 
 @dataclass(frozen=True)
@@ -99,6 +90,9 @@ class StereoBatch:
                 raise InputError("disparity_nonoccluded: expected it only with disparity_px (a GT mask)")
             check_same_shape(self.left, "left", self.disparity_nonoccluded, "disparity_nonoccluded")
             check_dtype(self.disparity_nonoccluded, "disparity_nonoccluded", "bool")
+        if isinstance(self.names, (str, bytes)):  # "Teddy" was read as 5 names, and "T" kept as one (an audit)
+            raise InputError(f"names: expected a sequence of {b} name{'s' * (b != 1)}, one per pair, got one string "
+                             f"{self.names!r}" + (f" (for one pair: ({self.names!r},))" if b == 1 else ""))
         if self.names and len(self.names) != b:
             raise InputError(f"names: expected {b} names, one per pair, got {len(self.names)}")
 

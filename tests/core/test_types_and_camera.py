@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 import torch
 
@@ -73,6 +75,15 @@ def test_stereo_batch_checks_its_fields():
         make_batch(disparity_px=torch.zeros(3, 1, 4, 5))
     with pytest.raises(InputError, match="names: expected 3 names, one per pair, got 1"):
         make_batch(names=("a",))
+    # Found by an audit: one string was read as a sequence of names, its letters ("expected 1 names, got 5" for
+    # "Teddy"), and a one-letter one for one pair, or a three-letter one for three, was kept as if it were one.
+    with pytest.raises(InputError, match=r"^names: expected a sequence of 1 name, one per pair, got one string "
+                                         r"'Teddy' \(for one pair: \('Teddy',\)\)$"):
+        make_batch(1, names="Teddy")
+    with pytest.raises(InputError, match="^names: expected a sequence of 3 names, one per pair, got one string 'abc'$"):
+        make_batch(names="abc")
+    with pytest.raises(InputError, match="names: expected a sequence of 1 name, one per pair, got one string 'T'"):
+        dataclasses.replace(make_batch(1), names="T")
     # Found by an audit: a float64 right view beside a float32 left made the differentiable depth float64, its
     # values other than the float32 pair's, while the hard result stayed float32.
     with pytest.raises(InputError, match="^right: expected the left view's dtype torch.float32, got torch.float64$"):
