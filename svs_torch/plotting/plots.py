@@ -19,7 +19,9 @@ import cv2
 import numpy as np
 import torch
 
+from ..core.checks import check_instance
 from ..core.mask_reductions import share_of_smaller
+from ..core.types import StereoBatch
 from .figures import LABEL_PAD_POINTS, floor_summary, objects_panel, place_depth_labels, render
 
 __all__ = ["NearestTruth", "estimate_figure", "matches_figure", "pipeline_figure", "render", "true_nearest_obstacle"]
@@ -311,8 +313,11 @@ def pipeline_figure(batch, result, index: int, *, true_nearest: NearestTruth | f
     """
     from matplotlib.figure import Figure
 
-    from ..pipeline import PipelineStatus
+    from ..pipeline import PipelineResult, PipelineStatus
 
+    # Swapped or missing, each failed deep inside with an AttributeError ('PipelineResult' has no 'disparity_px').
+    check_instance(batch, "batch", StereoBatch)
+    check_instance(result, "result", PipelineResult)
     if true_nearest is None:
         true_nearest = true_nearest_obstacle(batch, result, index)
     elif not isinstance(true_nearest, NearestTruth):

@@ -83,6 +83,18 @@ def test_pipeline_figure_shows_ground_truth_beside_the_estimate(scene):
     assert_every_text_inside(figure)
 
 
+def test_pipeline_figure_names_a_batch_and_a_result_given_swapped_or_missing(scene):
+    """Found by a library user's audit: estimate_figure(result, batch, 0) failed with "AttributeError:
+    'PipelineResult' object has no attribute 'disparity_px'" from deep inside, and a result of None likewise."""
+    from svs_torch.plotting.plots import estimate_figure
+
+    batch, result = scene
+    with pytest.raises(InputError, match="^batch: expected a StereoBatch, got PipelineResult$"):
+        estimate_figure(result, batch, 0)
+    with pytest.raises(InputError, match="^result: expected a PipelineResult, got NoneType$"):
+        pipeline_figure(batch, None, 0)
+
+
 def test_pipeline_figure_says_an_unranged_object_repeats(scene):
     """Was: a fence whose alias the views could not tell (the rendered 8 px bars at 1.5 m of
     experiments/repeated_patterns.py as a loose rig's frames) was labelled "no depth", like a region nothing could be
