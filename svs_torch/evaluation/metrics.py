@@ -190,6 +190,7 @@ class PairScore:
 
 def score_pair(truth: Sequence[tuple[int, float]], estimate: PairEstimate) -> PairScore:
     """Score one pair: ``truth`` is ``[(slot, true distance m), ...]`` for the kept slots with a truth."""
+    check_instance(estimate, "estimate", PairEstimate, ("r_min_m", "r_max_m", "objects_m"))  # None: AttributeError
     if not truth:
         return PairScore(None, None, None, None, None)
     real = [depth for _, depth in truth]

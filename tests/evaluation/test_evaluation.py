@@ -65,6 +65,16 @@ def test_score_pair_by_hand():
     assert empty.acc_r_min_pct is None and empty.num_objects == 0
 
 
+@pytest.mark.parametrize("truth", [[(0, 2.0)], []])
+def test_score_pair_names_an_estimate_that_is_not_one(truth):
+    """Found by a library user's audit: score_pair(truth, None) failed with "AttributeError: 'NoneType' object has
+    no attribute 'objects_m'", and with no truth returned an empty score for it in silence."""
+    with pytest.raises(InputError, match="^estimate: expected a PairEstimate, got NoneType$"):
+        score_pair(truth, None)
+    with pytest.raises(InputError, match="^estimate: expected a PairEstimate, got tuple$"):
+        score_pair(truth, ("OK", 1.1, 2.0, [1.9]))
+
+
 def _handmade_batch() -> tuple[StereoBatch, SimpleNamespace]:
     """Two 4×6 pairs, f·B = 10 m·px, doffs 0; label 1 covers columns 0–2, label 2 columns 3–5."""
     disparity = torch.tensor([[1.0, 2.0, 4.0, 5.0, 5.0, 5.0]] * 4).expand(2, 1, 4, 6).clone()
