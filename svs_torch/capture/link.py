@@ -28,7 +28,7 @@ import serial
 from ..core.camera import SVS_RESOLUTIONS
 from .command_gap import HOLD_OFF_SUSPECT_S, CommandGap
 from .link_types import (CaptureError, LinkConfig, LinkStats, RawFrame, _Attempt, _Dropped, attempt_reasons,
-                         check_link_url, frame_timeout_reason)
+                         check_link_url, frame_timeout_reason, open_hint)
 from .protocol import (BATTERY_PREFIX, CMD_BATTERY, CMD_GRAB, CMD_UPTIME, CMD_VERSION, QUALITY_PREFIX, UPTIME_PREFIX,
                        VERSION_PREFIX, BadFrame, FrameParser, ParsedFrame, ProtocolError, VersionInfo, describe_bytes,
                        find_line, find_token, parse_battery_reply, parse_quality_reply, parse_uptime_reply,
@@ -81,7 +81,7 @@ class CameraLink:
                 stopbits=serial.STOPBITS_ONE, rtscts=cfg.rtscts, timeout=cfg.poll_s,
                 write_timeout=cfg.write_timeout_s, exclusive=True)
         except (serial.SerialException, ValueError, OSError) as err:
-            raise CaptureError(f"{self.where}: could not open the link: {err}") from err
+            raise CaptureError(f"{self.where}: could not open the link: {err}{open_hint(self.url, err)}") from err
         self._pending_drop = None
         try:
             self.drain()
@@ -391,9 +391,9 @@ class CameraLink:
             try:
                 self.open()
                 break
-            except CaptureError:
+            except CaptureError as err:  # (said with the drop: "could not open" alone, after pairs, puzzled)
                 if attempt == self.config.max_reconnects:
-                    raise
+                    raise CaptureError(f"{err} (after the link dropped: {reason})") from None
         self.restore_settings(allow_reconnect=False)
 
     def _note_failure(self, reason: str) -> None:

@@ -13,7 +13,7 @@ from ..core.errors import InputError
 from .protocol import CMD_GRAB, FrameHeader, FrameParser, describe_bytes, max_jpeg_length
 
 __all__ = ["CaptureError", "LinkConfig", "LinkStats", "RawFrame", "attempt_reasons", "check_link_url",
-           "frame_timeout_reason"]
+           "frame_timeout_reason", "open_hint"]
 
 #: pyserial's URL handlers a board can be reached through (a plain path is a serial device).
 LINK_SCHEMES = ("socket", "rfc2217", "loop", "spy", "alt", "hwgrep", "cp2110")
@@ -44,6 +44,31 @@ def check_link_url(url: object, name: str) -> None:
         port = None
     if parts.scheme == "socket" and not (parts.hostname and port):
         raise InputError(f"{name}: expected socket://HOST:PORT (the left board 10001, the right 10002), got {url!r}")
+
+
+def open_hint(url: str, err: BaseException) -> str:
+    """What to do about a serial device ``url`` that would not open with ``err`` (pyserial's error, its errno), as
+    ``"; ..."`` to follow it; ``""`` for a URL (``socket://``...) or an error with no known cause. Why: a wired SVS's
+    user met "[Errno 13] ... Permission denied", "[Errno 2] ... No such file or directory" (an adapter unplugged,
+    mid-run too) and "Could not exclusively lock port" with nothing said of what to do (an audit of the serial path).
+    """
+    import errno
+
+    if "://" in url:
+        return ""
+    code = getattr(err, "errno", None)
+    if code in (errno.ENOENT, errno.ENODEV, errno.ENXIO):
+        return ("; no such serial device: is the camera's USB serial adapter plugged in? (ls /dev/ttyUSB* "
+                "/dev/ttyACM* lists those there)")
+    if code in (errno.EACCES, errno.EPERM):
+        return (f"; your user may not open it: add it to the device's group (ls -l {url}; usually dialout: "
+                "sudo usermod -aG dialout $USER, then log in again)")
+    if code in (errno.EAGAIN, errno.EWOULDBLOCK, errno.EBUSY):
+        return ("; another program holds it (a serial terminal, ModemManager, another svs-depth): close that "
+                "program, or check that --left and --right are the two boards' own devices")
+    if "Inappropriate ioctl" in str(err) or code == errno.EISDIR:
+        return "; it is no serial device: give the USB serial adapter's, e.g. /dev/ttyUSB0"
+    return ""
 
 
 class CaptureError(RuntimeError):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import time
 
 import numpy as np
@@ -27,7 +28,8 @@ def test_a_serial_device_another_link_holds_is_refused_not_shared():
         first.open()
         try:
             second = CameraLink(path, "right", FAST)
-            with pytest.raises(CaptureError, match=r"right camera \(/dev/.*\): could not open the link: .*lock"):
+            with pytest.raises(CaptureError, match=r"right camera \(/dev/.*\): could not open the link: .*lock.*"
+                                                   r"another program holds it"):
                 second.open()
             assert first.identify().role == "master"  # the holder is untouched
         finally:
@@ -164,3 +166,48 @@ def test_the_emulator_drops_both_boards_links_at_once_and_the_camera_reconnects_
         assert [link.stats.reconnects for link in camera.links.values()] == [1, 1]
         with pytest.raises(ValueError, match="camera: expected 'left', 'right'"):
             server.drop_connection("middle")
+
+
+@pytest.mark.parametrize("errno_, said", [
+    (2, r"no such serial device: is the camera's USB serial adapter plugged in\?"),
+    (13, r"your user may not open it: .*ls -l /dev/ttyUSB0; usually dialout: sudo usermod -aG dialout \$USER"),
+    (16, "another program holds it"),
+], ids=["missing", "permission", "busy"])
+def test_a_serial_device_that_will_not_open_says_what_to_do(monkeypatch, errno_, said):
+    # A wired SVS's user met pyserial's "[Errno 13] could not open port /dev/ttyUSB0: ... Permission denied" (no word
+    # of the dialout group), "No such file or directory" and "Could not exclusively lock port", naming the camera and
+    # its device but not what to do. (Errors faked: a test run as root opens any device.)
+    import serial
+
+    def refuse(url, **kwargs):
+        raise serial.SerialException(errno_, f"could not open port {url}: [Errno {errno_}] {os.strerror(errno_)}")
+
+    monkeypatch.setattr(serial, "serial_for_url", refuse)
+    with pytest.raises(CaptureError, match=rf"left camera \(/dev/ttyUSB0\): could not open the link: .*; {said}"):
+        CameraLink("/dev/ttyUSB0", "left", FAST).open()
+    with pytest.raises(CaptureError) as refused:  # over WiFi, none of it applies
+        CameraLink("socket://127.0.0.1:10001", "left", FAST).open()
+    assert str(refused.value).endswith(os.strerror(errno_))
+
+
+def test_a_device_missing_from_the_start_and_one_unplugged_mid_run_say_so():
+    # An unplugged USB serial adapter's device node disappears: opening it said pyserial's "No such file or
+    # directory" alone, and after pairs (the link dropped, then reopening failed) "could not open the link", as if
+    # it never had. The emulator's pty disappears with it, as the adapter's node does.
+    with pytest.raises(CaptureError, match=r"right camera \(/dev/h6-no-such-tty\): .*No such file.*plugged in"):
+        CameraLink("/dev/h6-no-such-tty", "right", FAST).open()
+    server = EmulatorServer(left_port=0, right_port=0, source=flat_source, use_pty=True).start()
+    link = CameraLink(server.pty_paths["left"], "left", FAST)
+    try:
+        link.open()
+        link.request_frame()
+        assert link.read_frame().header.width == 320
+        server.stop()
+        assert not os.path.exists(link.url)
+        link.request_frame()
+        with pytest.raises(CaptureError, match=r"left camera \(/dev/.*\): .*No such file.*plugged in.* \(after the "
+                                               r"link dropped: read: "):
+            link.read_frame()
+    finally:
+        link.close()
+        server.stop()
