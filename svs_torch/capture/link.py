@@ -28,7 +28,7 @@ import serial
 from ..core.camera import SVS_RESOLUTIONS
 from .command_gap import HOLD_OFF_SUSPECT_S, CommandGap
 from .link_types import (CaptureError, LinkConfig, LinkStats, RawFrame, _Attempt, _Dropped, attempt_reasons,
-                         check_link_url, frame_timeout_reason, open_hint)
+                         check_link_url, frame_timeout_reason, got_words, open_hint)
 from .protocol import (BATTERY_PREFIX, CMD_BATTERY, CMD_GRAB, CMD_UPTIME, CMD_VERSION, QUALITY_PREFIX, UPTIME_PREFIX,
                        VERSION_PREFIX, BadFrame, FrameParser, ParsedFrame, ProtocolError, VersionInfo, describe_bytes,
                        find_line, find_token, parse_battery_reply, parse_quality_reply, parse_uptime_reply,
@@ -145,7 +145,7 @@ class CameraLink:
                 self.stats.retries += 1
                 self._drain_quietly()
         raise CaptureError(f"{self.where}: sent {command!r} {attempts} times, expected {expected} within "
-                           f"{self.config.reply_timeout_s:g} s each, last got {describe_bytes(received)}")
+                           f"{self.config.reply_timeout_s:g} s each, last got {got_words(self, received)}")
 
     def command_ack(self, command: bytes, acks: tuple[bytes, ...], **kwargs: bool) -> bytes:
         """Send a command whose reply is one of the two-byte ``acks`` (e.g. ``b"b"`` → ``#b``)."""

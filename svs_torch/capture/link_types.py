@@ -13,7 +13,7 @@ from ..core.errors import InputError
 from .protocol import CMD_GRAB, FrameHeader, FrameParser, describe_bytes, max_jpeg_length
 
 __all__ = ["CaptureError", "LinkConfig", "LinkStats", "RawFrame", "attempt_reasons", "check_link_url",
-           "frame_timeout_reason", "open_hint"]
+           "frame_timeout_reason", "got_words", "open_hint"]
 
 #: pyserial's URL handlers a board can be reached through (a plain path is a serial device).
 LINK_SCHEMES = ("socket", "rfc2217", "loop", "spy", "alt", "hwgrep", "cp2110")
@@ -69,6 +69,25 @@ def open_hint(url: str, err: BaseException) -> str:
     if "Inappropriate ioctl" in str(err) or code == errno.EISDIR:
         return "; it is no serial device: give the USB serial adapter's, e.g. /dev/ttyUSB0"
     return ""
+
+
+def got_words(link: object, received: bytes) -> str:
+    """What a ``link`` (a :class:`~.link.CameraLink`) got instead of a command's reply, said for its error: ``received``
+    as :func:`~.protocol.describe_bytes` gives it, and on a serial device what to check where those bytes are mostly no
+    text (the port at another speed than the board's UART) or there were none. Why: a wired SVS's user who gave the
+    wrong ``--baud`` read "expected a line starting b'##Version' ..., last got 23 bytes b'\\xa3\\xfa7...'" and no
+    word of the speed (an audit of the serial path; hw/README.md named it, the error did not)."""
+    said = describe_bytes(received)
+    if "://" in link.url:  # over WiFi the module, not this port, runs at the board's speed
+        return said
+    baud = link.config.baudrate
+    if not received:
+        return f"{said} (is the board powered, its UART wired to the adapter, and at --baud {baud}?)"
+    text = sum(32 <= byte < 127 or byte in b"\r\n" for byte in received)
+    if text < 0.6 * len(received):
+        return (f"{said} (bytes that are no text: is --baud {baud} the board's UART speed? The SVS's is 2304000 "
+                "(or try 2530000, its actual rate), some builds' 115200)")
+    return said
 
 
 class CaptureError(RuntimeError):

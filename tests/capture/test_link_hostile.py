@@ -211,3 +211,47 @@ def test_a_device_missing_from_the_start_and_one_unplugged_mid_run_say_so():
     finally:
         link.close()
         server.stop()
+
+
+@pytest.mark.parametrize("answer, said", [
+    (lambda sent: bytes((97 * i + 13) % 256 for i in range(3 * len(sent) + 20)),
+     r"bytes that are no text: is --baud 115200 the board's UART speed\? The SVS's is 2304000"),
+    (lambda sent: b"", r"0 bytes b'' \(is the board powered, its UART wired to the adapter, and at --baud 115200\?\)"),
+], ids=["garbled", "silent"])
+def test_a_serial_board_at_another_speed_or_silent_is_told_what_to_check(answer, said):
+    # A port at another speed than the board's UART reads bytes that are no text: "expected a line starting
+    # b'##Version' ..., last got 23 bytes b'\xa3\xfa7...'", with no word of --baud (an audit that served a pty
+    # answering such bytes); a silent one "last got 0 bytes b''". A pty stands in for the USB serial adapter.
+    import select
+    import threading
+    import tty
+
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    stop = threading.Event()
+
+    def board() -> None:
+        while not stop.is_set():
+            if select.select([master], [], [], 0.02)[0]:
+                reply = answer(os.read(master, 4096))
+                if reply:
+                    os.write(master, reply)
+
+    thread = threading.Thread(target=board, daemon=True)
+    thread.start()
+    link = CameraLink(os.ttyname(slave), "right", LinkConfig(baudrate=115_200, reply_timeout_s=0.1, max_retries=0,
+                                                             drain_quiet_s=0.02, drain_max_s=0.05, poll_s=0.01))
+    try:
+        link.open()
+        with pytest.raises(CaptureError, match=rf"right camera \(/dev/.*\): sent b'V' 1 times, .*{said}"):
+            link.identify()
+    finally:
+        link.close()
+        stop.set()
+        thread.join()
+        os.close(master)
+        os.close(slave)
+    from svs_torch.capture.link_types import got_words
+
+    wifi = CameraLink("socket://127.0.0.1:1", "right")  # over WiFi, the module runs at the board's speed
+    assert got_words(wifi, b"\xa3\xfa") == "2 bytes b'\\xa3\\xfa'"
