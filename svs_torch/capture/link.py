@@ -28,7 +28,8 @@ import serial
 from ..core.camera import SVS_RESOLUTIONS
 from .command_gap import HOLD_OFF_SUSPECT_S, CommandGap
 from .link_types import (CaptureError, LinkConfig, LinkStats, RawFrame, _Attempt, _Dropped, attempt_reasons,
-                         check_link_url, frame_timeout_reason, got_words, open_hint)
+                         check_link_url, frame_timeout_reason, got_words, open_hint,
+                         write_failure)
 from .protocol import (BATTERY_PREFIX, CMD_BATTERY, CMD_GRAB, CMD_UPTIME, CMD_VERSION, QUALITY_PREFIX, UPTIME_PREFIX,
                        VERSION_PREFIX, BadFrame, FrameParser, ParsedFrame, ProtocolError, VersionInfo, describe_bytes,
                        find_line, find_token, parse_battery_reply, parse_quality_reply, parse_uptime_reply,
@@ -72,10 +73,9 @@ class CameraLink:
         """Open the link and discard anything already waiting (the master's power-up banner, §2)."""
         cfg = self.config
         try:
-            # exclusive: a serial device another program (or this one's other camera, by another path to it) holds
-            # is refused ("Could not exclusively lock port"). Why: without the lock both opened it, each read part
-            # of the other's replies, and both failed on frames "cut short" or "expected it to end FF D9" (an
-            # audit). Ignored by socket://, where the WiFi module serves one client at a time.
+            # exclusive: a serial device another program (or this one's other camera, by another path) holds is
+            # refused ("Could not exclusively lock port"). Why: without the lock both read parts of each other's
+            # replies and failed on frames "cut short" (an audit). Ignored by socket:// (one client at a time).
             self._serial = serial.serial_for_url(
                 self.url, baudrate=cfg.baudrate, bytesize=serial.EIGHTBITS, parity=serial.PARITY_NONE,
                 stopbits=serial.STOPBITS_ONE, rtscts=cfg.rtscts, timeout=cfg.poll_s,
@@ -343,7 +343,7 @@ class CameraLink:
         try:
             self._serial.write(command)
         except (serial.SerialException, OSError) as err:
-            raise _Dropped(f"write: {err}") from None
+            raise _Dropped(write_failure(self.url, err)) from None
         self._request_s = time.monotonic()
         self._prompt = self._request_s - self._last_reply_s < HOLD_OFF_SUSPECT_S
 

@@ -13,7 +13,7 @@ from ..core.errors import InputError
 from .protocol import CMD_GRAB, FrameHeader, FrameParser, describe_bytes, max_jpeg_length
 
 __all__ = ["CaptureError", "LinkConfig", "LinkStats", "RawFrame", "attempt_reasons", "check_link_url",
-           "frame_timeout_reason", "got_words", "open_hint"]
+           "frame_timeout_reason", "got_words", "open_hint", "write_failure"]
 
 #: pyserial's URL handlers a board can be reached through (a plain path is a serial device).
 LINK_SCHEMES = ("socket", "rfc2217", "loop", "spy", "alt", "hwgrep", "cp2110")
@@ -88,6 +88,18 @@ def got_words(link: object, received: bytes) -> str:
         return (f"{said} (bytes that are no text: is --baud {baud} the board's UART speed? The SVS's is 2304000 "
                 "(or try 2530000, its actual rate), some builds' 115200)")
     return said
+
+
+def write_failure(url: str, err: BaseException) -> str:
+    """How a link to ``url`` says that a write failed with ``err``; on a serial device, a write that timed out
+    (pyserial's ``SerialTimeoutException``) says why it may have. Why: a UART with RTS/CTS flow control (§1, always
+    on) sends no byte while the board holds its CTS line low (an adapter without those wires), and a wired SVS's user
+    read "link dropped while sending b'V' ...: write: Write timeout", no word of the wires (an audit)."""
+    said = f"write: {err}"
+    if "://" in url or type(err).__name__ != "SerialTimeoutException":
+        return said
+    return (f"{said} (the adapter sent no byte: RTS/CTS flow control is on, as the SVS's UART wants, so check that the "
+            "adapter's RTS and CTS wires reach the board's)")
 
 
 class CaptureError(RuntimeError):

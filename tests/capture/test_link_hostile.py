@@ -255,3 +255,24 @@ def test_a_serial_board_at_another_speed_or_silent_is_told_what_to_check(answer,
 
     wifi = CameraLink("socket://127.0.0.1:1", "right")  # over WiFi, the module runs at the board's speed
     assert got_words(wifi, b"\xa3\xfa") == "2 bytes b'\\xa3\\xfa'"
+
+
+def test_a_serial_write_that_times_out_names_the_flow_control_wires(monkeypatch):
+    # RTS/CTS flow control is on (SVS_PROTOCOL.md §1): an adapter whose CTS wire does not reach the board sends no
+    # byte, and the error said "link dropped while sending b'V' ...: write: Write timeout", nothing of the wires.
+    import serial
+
+    def stalled(self, data):
+        raise serial.SerialTimeoutException("Write timeout")
+
+    with EmulatorServer(left_port=0, right_port=0, source=flat_source, use_pty=True) as server:
+        link = CameraLink(server.pty_paths["left"], "left", FAST)
+        link.open()
+        try:
+            monkeypatch.setattr(type(link._serial), "write", stalled)
+            with pytest.raises(CaptureError, match=r"left camera \(/dev/.*\): link dropped while sending b'V' .*"
+                                                   r"write: Write timeout \(.*RTS/CTS flow control is on.*RTS and CTS"):
+                link.identify()
+        finally:
+            monkeypatch.undo()
+            link.close()
