@@ -28,8 +28,7 @@ import serial
 from ..core.camera import SVS_RESOLUTIONS
 from .command_gap import HOLD_OFF_SUSPECT_S, CommandGap
 from .link_types import (CaptureError, LinkConfig, LinkStats, RawFrame, _Attempt, _Dropped, attempt_reasons,
-                         check_link_url, frame_timeout_reason, got_words, open_hint,
-                         write_failure)
+                         check_link_url, frame_timeout_reason, got_words, open_hint, write_failure)
 from .protocol import (BATTERY_PREFIX, CMD_BATTERY, CMD_GRAB, CMD_UPTIME, CMD_VERSION, QUALITY_PREFIX, UPTIME_PREFIX,
                        VERSION_PREFIX, BadFrame, FrameParser, ParsedFrame, ProtocolError, VersionInfo, describe_bytes,
                        find_line, find_token, parse_battery_reply, parse_quality_reply, parse_uptime_reply,
@@ -285,23 +284,24 @@ class CameraLink:
         parser = FrameParser()
         deadline = self._request_s + cfg.reply_timeout_s
         received = bytearray()
-        last_data_s = time.monotonic()
+        last_data_s = header_s = time.monotonic()
         while time.monotonic() < deadline:
             had_header = parser.header is not None
             data = self._read(parser.bytes_needed)
             if not data:
                 continue
             last_data_s = time.monotonic()
+            header_s = header_s if had_header else last_data_s  # the read that completed the header (RawFrame)
             received += data[:64 - len(received)] if len(received) < 64 else b""
             for event in parser.feed(data):
-                return self._finish_frame(event, attempt)
+                return self._finish_frame(event, attempt, header_s)
             if parser.header is not None and not had_header:
                 deadline = time.monotonic() + cfg.transfer_timeout_s(parser.header.length)
         self.stats.stray_bytes += parser.skipped_bytes
         return _Attempt(frame_timeout_reason(cfg, self.size_code, parser, bytes(received),
                                              time.monotonic() - last_data_s), silent=not received)
 
-    def _finish_frame(self, event: ParsedFrame | BadFrame, attempt: int) -> RawFrame | _Attempt:
+    def _finish_frame(self, event: ParsedFrame | BadFrame, attempt: int, header_s: float) -> RawFrame | _Attempt:
         now, wall = time.monotonic(), time.time()
         self._replied(now)
         self.stats.stray_bytes += event.skipped_bytes
@@ -317,7 +317,7 @@ class CameraLink:
                             "sent again", wrong_size=True)
         return RawFrame(header=header, jpeg=event.jpeg, request_monotonic_s=self._request_s,
                         arrival_monotonic_s=now, arrival_wall_s=wall, attempts=attempt,
-                        skipped_bytes=event.skipped_bytes)
+                        skipped_bytes=event.skipped_bytes, header_monotonic_s=header_s)
 
     # ----------------------------------------------------------------------------------------- low level
 

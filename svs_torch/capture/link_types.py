@@ -193,6 +193,9 @@ class RawFrame:
     arrival_wall_s: float  # time.time() at the same moment (Unix seconds)
     attempts: int  # I commands sent for this frame (1 = no retry)
     skipped_bytes: int  # stray bytes skipped before the header
+    # time.monotonic() when the frame's header was read: the board had grabbed and encoded the frame, and its JPEG's
+    # bytes follow, as many as the scene makes (None: not known, a frame made by hand; the arrival stands in)
+    header_monotonic_s: float | None = None
 
 
 class _Dropped(Exception):

@@ -1,8 +1,9 @@
 """The SVS stereo camera: two SRV-1 links (left = master, right = slave), grabbed as approximately simultaneous pairs.
 
 The two boards are not hardware-synchronised (``SVS_PROTOCOL.md`` §1): :meth:`SVSStereoCamera.grab_pair` sends
-``I`` on both links back to back, reads both replies concurrently, and timestamps each frame when its last byte
-arrives; :attr:`StereoPair.time_between_frames_s` says how far apart the two frames came.
+``I`` on both links back to back, reads both replies concurrently, and timestamps each frame when its header and
+its last byte arrive; :attr:`StereoPair.time_between_frames_s` says how far apart the two boards' replies began
+(:mod:`.stereo_frames`).
 """
 
 from __future__ import annotations
@@ -13,7 +14,6 @@ import threading
 import time
 import warnings
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
 from typing import TypeVar
 
 import numpy as np
@@ -22,11 +22,11 @@ import torch
 from ..core.camera import SVS_CAMERA, SVSCamera
 from ..core.checks import InputError
 from ..core.daemon_task import DaemonTask
-from ..core.image_files import JPEG_GRAY_DECODE, damaged_jpeg, declared_size, decode_collecting
 from ..core.types import StereoBatch
 from .link import CameraLink, check_link_url
-from .link_types import CaptureError, DamagedFrameError, LinkConfig, RawFrame
+from .link_types import CaptureError, DamagedFrameError, LinkConfig
 from .protocol import VersionInfo, size_code_for
+from .stereo_frames import Frame, PairBatch, StereoPair, decode_frame, time_between_frames_s
 
 __all__ = ["STEREO_ROLES", "Frame", "StereoPair", "PairBatch", "SVSStereoCamera", "to_stereo_batch", "decode_frame"]
 
@@ -35,86 +35,6 @@ STEREO_ROLES = {"left": "master", "right": "slave"}
 
 T = TypeVar("T")
 _CONNECT_TIMEOUT_S = 5.0  # pyserial's fixed socket:// connect timeout
-
-
-@dataclass(frozen=True)
-class Frame:
-    """One decoded frame of one camera.
-
-    Attributes:
-        camera: ``"left"`` or ``"right"``.
-        image: grayscale ``(H, W)`` uint8, decoded from ``jpeg``.
-        jpeg: the JPEG bytes exactly as the board sent them (colour, 4:2:2).
-        request_monotonic_s: ``time.monotonic()`` when the ``I`` for this frame was sent, seconds.
-        arrival_monotonic_s: ``time.monotonic()`` when its last byte arrived, seconds.
-        arrival_wall_s: ``time.time()`` at arrival (Unix seconds).
-        attempts: ``I`` commands it took (1 = no retry).
-    """
-
-    camera: str
-    image: np.ndarray
-    jpeg: bytes
-    request_monotonic_s: float
-    arrival_monotonic_s: float
-    arrival_wall_s: float
-    attempts: int
-
-    @property
-    def size_wh(self) -> tuple[int, int]:
-        return self.image.shape[1], self.image.shape[0]
-
-
-@dataclass(frozen=True)
-class StereoPair:
-    """A left and a right frame grabbed together.
-
-    Attributes:
-        index: sequence number of the pair since the camera was opened.
-        left, right: the frames.
-        time_between_frames_s: ``right.arrival_monotonic_s − left.arrival_monotonic_s``, seconds (signed).
-    """
-
-    index: int
-    left: Frame
-    right: Frame
-    time_between_frames_s: float
-
-
-@dataclass(frozen=True)
-class PairBatch:
-    """One item of :meth:`SVSStereoCamera.stream_batches`: the batch, its pairs, and how many pairs were skipped."""
-
-    batch: StereoBatch
-    pairs: tuple[StereoPair, ...]
-    num_dropped: int
-
-
-def decode_frame(raw: RawFrame, camera: str, where: str) -> Frame:
-    """Decode a received JPEG to grayscale (as ``estimate`` reads a file); raises :class:`CaptureError` naming
-    ``where`` if it is not a JPEG, and :class:`DamagedFrameError` (the pair is grabbed again) if it does not decode
-    to the size its frame header announced, or libjpeg says its image data was damaged (it decodes, its lost
-    blocks gray: ranged, a gray block is a wall that is not there)."""
-    want = (raw.header.height, raw.header.width)
-    if raw.jpeg[:2] != b"\xff\xd8":
-        raise CaptureError(f"{where}: expected a JPEG of {want[1]}x{want[0]}, got no JPEG in {len(raw.jpeg)} bytes")
-    # The size its JPEG header declares, before decoding: a frame whose SOF said 30000x30000 (78 kB, it passes the
-    # link's length and marker checks) took 3.4 s and 2 GB to decode before the size refused it. A size other
-    # than the announced one, as a frame that does not decode, is grabbed again (one such frame stopped capture).
-    declared = declared_size(raw.jpeg)
-    if declared is not None and declared != want[::-1]:
-        raise DamagedFrameError(f"{where}: expected a JPEG of {want[1]}x{want[0]}, got a header declaring "
-                                f"{declared[0]}x{declared[1]} in {len(raw.jpeg)} bytes")
-    image, complaints = decode_collecting(np.frombuffer(raw.jpeg, dtype=np.uint8), JPEG_GRAY_DECODE)
-    if image is None or image.shape != want:
-        got = "nothing" if image is None else f"{image.shape[1]}x{image.shape[0]}"
-        raise DamagedFrameError(f"{where}: expected a JPEG of {want[1]}x{want[0]}, decoded {got} "
-                                f"from {len(raw.jpeg)} bytes")
-    damaged = damaged_jpeg(complaints)
-    if damaged is not None:
-        raise DamagedFrameError(f"{where}: a JPEG damaged on the link (libjpeg: {damaged}), {len(raw.jpeg)} bytes")
-    return Frame(camera=camera, image=image, jpeg=raw.jpeg, request_monotonic_s=raw.request_monotonic_s,
-                 arrival_monotonic_s=raw.arrival_monotonic_s, arrival_wall_s=raw.arrival_wall_s,
-                 attempts=raw.attempts)
 
 
 def to_stereo_batch(pairs: list[StereoPair] | tuple[StereoPair, ...], *, dtype: torch.dtype = torch.float32,
@@ -262,7 +182,7 @@ class SVSStereoCamera:
                 damage_regrabs += 1  # both boards again: a pair is two frames of one moment
                 continue
             _check_pair_size(left, right, self.size_wh)
-            gap_s = right.arrival_monotonic_s - left.arrival_monotonic_s
+            gap_s = time_between_frames_s(left, right)
             if self.max_frame_gap_s is None or abs(gap_s) <= self.max_frame_gap_s or gap_regrabs == REGRABS_FOR_GAP:
                 break
             gap_regrabs += 1

@@ -7,8 +7,10 @@ Output, in ``--out-dir`` (alias ``--out``):
 * ``index.jsonl``: one JSON object per pair, appended and flushed only after both of its images are in place, so
   after an error or Ctrl-C it lists exactly the complete pairs. Fields: ``index``, ``left``/``right`` (file
   names), ``width``, ``height``, ``left_bytes``/``right_bytes``, per camera ``*_request_monotonic_s``,
-  ``*_arrival_monotonic_s``, ``*_arrival_wall_s`` (Unix seconds), ``*_attempts``, ``time_between_frames_s``
-  (right arrival − left arrival, seconds), ``quality`` (the ``--quality`` digit both boards were set to; null
+  ``*_header_monotonic_s`` (its frame header read), ``*_arrival_monotonic_s`` (its last byte), ``*_arrival_wall_s``
+  (Unix seconds), ``*_attempts``, ``time_between_frames_s`` (right header − left header, seconds: when each board
+  began its reply, its frame grabbed and encoded; not the last bytes, whose gap grows with the JPEGs' lengths on a
+  slow link), ``quality`` (the ``--quality`` digit both boards were set to; null
   without it: the board's own setting, 4 at power-up, which no command reads back) and ``frozen_camera``
   (``"left"``/``"right"``: that camera's frame came again, pixel for pixel, while the other's changed; ``"both"``:
   both frames came again for 3 s; by ``guide``'s rule, :class:`~svs_torch.capture.frozen.FrozenCameraWatch`; else

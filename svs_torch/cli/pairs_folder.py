@@ -93,6 +93,7 @@ def save_pair(out: Path | None, pair: StereoPair, option: str = "--out-dir") -> 
 
 def _frame_fields(name: str, frame: Frame) -> dict[str, Any]:
     return {f"{name}_bytes": len(frame.jpeg), f"{name}_request_monotonic_s": frame.request_monotonic_s,
+            f"{name}_header_monotonic_s": frame.header_monotonic_s,
             f"{name}_arrival_monotonic_s": frame.arrival_monotonic_s,
             f"{name}_arrival_wall_s": frame.arrival_wall_s, f"{name}_attempts": frame.attempts}
 

@@ -305,7 +305,7 @@ def test_capture_pairs_over_tcp(camera):
         assert pair.left.jpeg[:2] == b"\xff\xd8" and pair.left.attempts == 1
         for frame in (pair.left, pair.right):
             assert frame.request_monotonic_s <= frame.arrival_monotonic_s
-        assert pair.time_between_frames_s == pair.right.arrival_monotonic_s - pair.left.arrival_monotonic_s
+        assert pair.time_between_frames_s == pair.right.header_monotonic_s - pair.left.header_monotonic_s
         assert abs(pair.time_between_frames_s) < 0.2
     assert [p.index for p in pairs] == [0, 1, 2]
     assert pairs[0].left.image.mean() > pairs[0].right.image.mean()  # the source's left is brighter
@@ -537,6 +537,33 @@ def test_a_pair_whose_frames_came_apart_is_grabbed_again(emulator, max_gap_s):
         SVSStereoCamera(emulator.urls["left"], emulator.urls["right"], max_frame_gap_s=0)
 
 
+def plain_left_noisy_right(camera: str, width: int, height: int, time_s: float) -> np.ndarray:
+    """One moment whose two JPEGs differ in length about tenfold: a plain left view, a noisy right one."""
+    if camera == "left":
+        return np.full((height, width), 128, dtype=np.uint8)
+    return np.random.default_rng(height).integers(0, 255, (height, width), dtype=np.uint8)
+
+
+def test_frames_of_one_moment_are_one_moment_on_a_slow_link():
+    """An audit of a wired SVS at 115,200 baud: the pair's two frames were timed by their last bytes, which on a slow
+    link follow as many bytes as each JPEG has, so two frames of one 640x480 moment (50 and 55 kB) came 0.4 s apart,
+    every pair was grabbed three times and then refused by guide as "not one stereo moment". The boards' replies
+    begin together: the gap is now taken from each frame's header (time_between_frames_s), the last bytes still
+    recorded as they came."""
+    rate = 16_000.0  # bytes a second: a 160x120 noise JPEG (about 10 kB) takes over half a second, the plain one 0.05
+    slow = dataclasses.replace(FAST, link_bytes_per_s=rate, reply_timeout_s=1.0)
+    with EmulatorServer(left_port=0, right_port=0, source=plain_left_noisy_right, link_bytes_per_s=rate) as server, \
+            SVSStereoCamera(server.urls["left"], server.urls["right"], (160, 120), config=slow) as cam:
+        pair = cam.grab_pair()
+    assert len(pair.right.jpeg) - len(pair.left.jpeg) > 0.3 * rate  # (the lengths alone part the last bytes)
+    assert pair.right.arrival_monotonic_s - pair.left.arrival_monotonic_s > 0.3
+    assert pair.left.attempts == pair.right.attempts == 1  # not grabbed again for the lengths' gap
+    assert abs(pair.time_between_frames_s) < 0.1
+    assert pair.time_between_frames_s == pair.right.header_monotonic_s - pair.left.header_monotonic_s
+    for frame in (pair.left, pair.right):
+        assert frame.request_monotonic_s <= frame.header_monotonic_s <= frame.arrival_monotonic_s
+
+
 def test_a_reply_already_waiting_is_not_taken_for_the_next_grab(emulator, camera):
     """Found by an audit of the device side: a reply that came late (to an I re-sent after its timeout, or a board
     answering twice) was read as the next grab's frame, one grab old, and on a board with no hold-off every later
@@ -669,7 +696,9 @@ def test_cli_capture_with_builtin_emulator(tmp_path, capsys):
         image = cv2.imread(str(tmp_path / "run" / record["left"]), cv2.IMREAD_GRAYSCALE)
         assert image.shape == (120, 160) and record["left_bytes"] == (tmp_path / "run" / record["left"]).stat().st_size
         assert record["time_between_frames_s"] == pytest.approx(
-            record["right_arrival_monotonic_s"] - record["left_arrival_monotonic_s"])
+            record["right_header_monotonic_s"] - record["left_header_monotonic_s"])
+        assert record["left_request_monotonic_s"] <= record["left_header_monotonic_s"] <= record[
+            "left_arrival_monotonic_s"]
     err = capsys.readouterr().err
     assert "saved 3 pairs" in err
     # The last line gives the estimate command that ranges them as camera frames, as guide --record's summary does.

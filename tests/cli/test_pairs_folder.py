@@ -18,7 +18,7 @@ from svs_torch.core.errors import InputError
 
 def _pair(index: int) -> SimpleNamespace:
     frame = SimpleNamespace(jpeg=b"\xff\xd8 a jpeg", size_wh=(320, 240), request_monotonic_s=1.0,
-                            arrival_monotonic_s=1.1, arrival_wall_s=2.0, attempts=1)
+                            header_monotonic_s=1.05, arrival_monotonic_s=1.1, arrival_wall_s=2.0, attempts=1)
     return SimpleNamespace(index=index, left=frame, right=frame, time_between_frames_s=0.01)
 
 
