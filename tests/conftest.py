@@ -97,6 +97,27 @@ def draw_no_figures(monkeypatch) -> None:
     monkeypatch.setattr(svs_torch.plotting.plots, "render", undrawn)
 
 
+def resolves_in_package(dotted: str) -> bool:
+    """Whether ``svs_torch.a.b.c`` names a module, or an attribute (a dataclass field included) of the longest module
+    prefix that imports."""
+    import dataclasses
+    import importlib
+
+    parts = dotted.split(".")
+    for cut in range(len(parts), 0, -1):
+        try:
+            obj = importlib.import_module(".".join(parts[:cut]))
+        except ImportError:
+            continue
+        for name in parts[cut:]:
+            fields = {f.name for f in dataclasses.fields(obj)} if dataclasses.is_dataclass(obj) else set()
+            if not hasattr(obj, name) and name not in fields:
+                return False
+            obj = getattr(obj, name, None)
+        return True
+    return False
+
+
 def render_border_strip_scene(on_border: bool = True, near_m: float = 0.8, strip_px: int = 20):
     """A synthetic 320×240 SVS pair: a wide object 1.5 m away and a strip ``near_m`` away, ``strip_px`` wide. With
     ``on_border`` the strip's left edge is the image's (its disparity, 37 px at 0.8 m, is wider than it: none of

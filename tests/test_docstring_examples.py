@@ -9,6 +9,7 @@ import re
 from pathlib import Path
 
 import svs_torch
+from conftest import resolves_in_package
 
 ROOT = Path(svs_torch.__file__).parent
 
@@ -49,23 +50,7 @@ def test_every_full_cross_reference_in_the_docstrings_resolves():
     """A library user's audit followed ``:func:`~svs_torch.data.scene_name``` (PairSource.loaded_name's) to a name
     the package does not have (it is ``svs_torch.data.datasets.scene_name``): every ``:func:``, ``:class:``,
     ``:mod:``, ``:data:``, ``:meth:`` or ``:attr:`` reference spelled from ``svs_torch`` must import."""
-    import dataclasses
     import warnings
-
-    def resolves(dotted: str) -> bool:
-        parts = dotted.split(".")
-        for cut in range(len(parts), 0, -1):
-            try:
-                obj = importlib.import_module(".".join(parts[:cut]))
-            except ImportError:
-                continue
-            for name in parts[cut:]:
-                fields = {f.name for f in dataclasses.fields(obj)} if dataclasses.is_dataclass(obj) else set()
-                if not hasattr(obj, name) and name not in fields:
-                    return False
-                obj = getattr(obj, name, None)
-            return True
-        return False
 
     pattern = r":(?:func|class|mod|data|meth|attr|exc):`~?(svs_torch(?:\.\w+)+)`"
     references = {(name, str(path.relative_to(ROOT.parent))) for path in sorted(ROOT.rglob("*.py"))
@@ -73,5 +58,5 @@ def test_every_full_cross_reference_in_the_docstrings_resolves():
     assert len(references) > 200
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", DeprecationWarning)  # old module paths are named on purpose
-        unresolved = sorted(f"{path}: {name}" for name, path in references if not resolves(name))
+        unresolved = sorted(f"{path}: {name}" for name, path in references if not resolves_in_package(name))
     assert unresolved == []

@@ -5,7 +5,7 @@ from __future__ import annotations
 import re
 import warnings
 
-from conftest import REPO_ROOT
+from conftest import REPO_ROOT, resolves_in_package
 
 
 def shell_blocks(text: str) -> list[str]:
@@ -66,27 +66,6 @@ def test_the_hardware_notes_python_example_runs():
     assert tuple(namespace["batch"].left.shape) == (4, 1, 240, 320)
 
 
-def _resolves(dotted: str) -> bool:
-    """Whether ``svs_torch.a.b.c`` names a module, or an attribute (a dataclass field included) of the longest module
-    prefix that imports."""
-    import dataclasses
-    import importlib
-
-    parts = dotted.split(".")
-    for cut in range(len(parts), 0, -1):
-        try:
-            obj = importlib.import_module(".".join(parts[:cut]))
-        except ImportError:
-            continue
-        for name in parts[cut:]:
-            fields = {f.name for f in dataclasses.fields(obj)} if dataclasses.is_dataclass(obj) else set()
-            if not hasattr(obj, name) and name not in fields:
-                return False
-            obj = getattr(obj, name, None)
-        return True
-    return False
-
-
 def test_every_python_name_the_readmes_give_resolves():
     """A reader types the dotted names the prose gives (``svs_torch.geometry.row_alignment_keystone.
     right_camera_deviation``, ``svs_torch.pipeline.beyond_range``, ...): each must still import."""
@@ -96,5 +75,5 @@ def test_every_python_name_the_readmes_give_resolves():
     assert len(names) > 20
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", DeprecationWarning)  # the README names old module paths on purpose
-        unresolved = [name for name in sorted(names) if not _resolves(name)]
+        unresolved = [name for name in sorted(names) if not resolves_in_package(name)]
     assert unresolved == []
