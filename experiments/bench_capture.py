@@ -29,7 +29,22 @@ from svs_torch.core.camera import parse_size  # noqa: E402
 from svs_torch.capture import LinkConfig, SVSStereoCamera  # noqa: E402
 
 from svs_torch.cli.common import positive_int  # noqa: E402
-from run_metadata import run_metadata, size_list  # noqa: E402
+from svs_torch.core.camera import SVS_RESOLUTIONS  # noqa: E402
+from run_metadata import run_metadata  # noqa: E402
+
+#: The sizes a board sends, as ``--sizes`` takes them.
+BOARD_SIZES = tuple(f"{width}x{height}" for width, height in SVS_RESOLUTIONS.values())
+
+
+def board_sizes(text: str) -> str:
+    """An ``argparse`` type for ``--sizes``: comma-separated sizes a board sends (:data:`BOARD_SIZES`). An audit:
+    ``native`` (which the help offered) and ``100x100`` were taken, then ended in a traceback once the emulator had
+    started (with ``--frames torch``: "emulator did not start", a RuntimeError)."""
+    odd = [size for size in text.split(",") if size not in BOARD_SIZES]
+    if odd:
+        raise argparse.ArgumentTypeError(f"expected comma-separated sizes a board sends ({', '.join(BOARD_SIZES)}), "
+                                         f"got {text!r}")
+    return text
 
 
 def start_emulator(frames: str, sizes: list[str]) -> tuple[subprocess.Popen, dict[str, str]]:
@@ -70,8 +85,8 @@ def bench_size(urls: dict[str, str], size: str, runs: int, pairs: int) -> dict:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--sizes", default="320x240,640x480", type=size_list("wxh"),
-                        help="comma-separated WxH sizes or native (default: %(default)s)")
+    parser.add_argument("--sizes", default="320x240,640x480", type=board_sizes,
+                        help=f"comma-separated sizes a board sends, of {', '.join(BOARD_SIZES)} (default: %(default)s)")
     parser.add_argument("--runs", type=positive_int, default=5, help="timed runs (default: %(default)s)")
     parser.add_argument("--pairs", type=positive_int, default=50,
                         help="frame pairs read per run (default: %(default)s)")

@@ -3,6 +3,7 @@ status 2, never a traceback, a run of minutes, or a record of a run with a value
 
 from __future__ import annotations
 
+import os
 import sys
 from pathlib import Path
 
@@ -325,3 +326,20 @@ def test_every_experiment_writes_its_reports_whole(tmp_path):
     write_text_whole(report, "320×240 ± 0.5 %\n")
     assert report.read_bytes() == "320×240 ± 0.5 %\n".encode("utf-8") and [p.name for p in tmp_path.iterdir()] == [
         "table.md"]
+
+
+def test_bench_capture_takes_only_the_sizes_a_board_sends():
+    """Found by an audit: ``bench_capture.py --sizes native`` (its help offered "WxH sizes or native") and ``--sizes
+    100x100`` were taken, then ended in an InputError traceback once the emulator had started and frames were read
+    (or, preparing its frames, in "emulator did not start"). They are now refused when parsed, naming the sizes."""
+    import subprocess
+
+    env = {**os.environ, "PYTHONPATH": str(REPO_ROOT), "OMP_NUM_THREADS": "1"}
+    for sizes in ("native", "320x240,100x100"):
+        run = subprocess.run([sys.executable, str(REPO_ROOT / "experiments" / "bench_capture.py"), "--sizes", sizes,
+                              "--runs", "1", "--pairs", "1", "--frames", "simple"], env=env, capture_output=True,
+                             text=True, timeout=120)
+        assert run.returncode == 2 and "Traceback" not in run.stderr, run.stderr[-2000:]
+        assert run.stderr.strip().splitlines()[-1] == (
+            f"bench_capture.py: error: argument --sizes: expected comma-separated sizes a board sends (160x120, "
+            f"320x240, 640x480, 1280x1024), got {sizes!r}")
