@@ -30,7 +30,7 @@ from svs_torch.capture import LinkConfig, SVSStereoCamera  # noqa: E402
 
 from svs_torch.cli.common import positive_int  # noqa: E402
 from svs_torch.core.camera import SVS_RESOLUTIONS  # noqa: E402
-from run_metadata import run_metadata  # noqa: E402
+from run_metadata import run_metadata, run_script  # noqa: E402
 
 #: The sizes a board sends, as ``--sizes`` takes them.
 BOARD_SIZES = tuple(f"{width}x{height}" for width, height in SVS_RESOLUTIONS.values())
@@ -111,4 +111,4 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run_script(main)  # a refused input or a Ctrl-C: one line, exit 2 or 130 (a Ctrl-C was a traceback: an audit)

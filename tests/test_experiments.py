@@ -973,6 +973,35 @@ def test_an_experiment_stopped_by_ctrl_c_says_so_in_one_line(tmp_path, data_dir)
     assert list(tmp_path.iterdir()) == []
 
 
+def test_bench_capture_stopped_by_ctrl_c_says_so_in_one_line_and_ends_its_emulator():
+    """Found by an audit: ``bench_capture.py`` stopped by Ctrl-C while reading frames ended in a KeyboardInterrupt
+    traceback (from the driver's threads), the one benchmark not run through run_script. Now one line and exit
+    status 130, and the emulator it started (its child) is ended too, with a Ctrl-C sent to the script alone."""
+    import signal
+    import subprocess
+    import time
+    from pathlib import Path
+
+    env = {**os.environ, "PYTHONPATH": str(REPO_ROOT), "OMP_NUM_THREADS": "1"}
+    run = subprocess.Popen([sys.executable, str(REPO_ROOT / "experiments" / "bench_capture.py"), "--sizes", "160x120",
+                            "--runs", "100000", "--pairs", "10", "--frames", "simple"], env=env,
+                           stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    children = Path(f"/proc/{run.pid}/task/{run.pid}/children")
+    if not children.exists():
+        run.kill()
+        pytest.skip("no /proc children list here")
+    deadline = time.monotonic() + 60
+    while not children.read_text().split() and time.monotonic() < deadline:  # the emulator started
+        time.sleep(0.1)
+    emulator = int(children.read_text().split()[0])
+    time.sleep(3)  # its URLs read, the driver's connections open and frames read
+    run.send_signal(signal.SIGINT)
+    err = run.communicate(timeout=60)[1]
+    assert run.returncode == 130, err[-2000:]
+    assert "Traceback" not in err and err.strip().splitlines()[-1] == "bench_capture.py: interrupted", err[-2000:]
+    assert not Path(f"/proc/{emulator}").exists() or "Z" in Path(f"/proc/{emulator}/stat").read_text().split()[2]
+
+
 @pytest.mark.parametrize("argv, option", [
     (["--weights", "{copy}", "--methods", "default,otsu"], "--weights"),
     (["--nearness", "mine={copy}", "--methods", "default"], "--nearness mine={copy}"),
