@@ -38,7 +38,7 @@ SIZE_WH = (320, 240)
 
 def timed(fn, repeats: int, pairs: int = 1) -> dict:
     """Median and spread of ``repeats`` runs of ``fn`` (one warm-up run first), in milliseconds; with the
-    median per pair when ``fn`` handles ``pairs`` pairs."""
+    median per pair when ``fn`` handles ``pairs`` pairs, and the count of runs the median is of."""
     fn()
     runs = []
     for _ in range(repeats):
@@ -46,7 +46,8 @@ def timed(fn, repeats: int, pairs: int = 1) -> dict:
         fn()
         runs.append((time.perf_counter() - start) * 1e3)
     median = statistics.median(runs)
-    return {"median_ms": median, "min_ms": min(runs), "max_ms": max(runs), "ms_per_pair": median / pairs}
+    return {"median_ms": median, "min_ms": min(runs), "max_ms": max(runs), "ms_per_pair": median / pairs,
+            "runs": repeats}
 
 
 def load_pairs(data_dir: Path, count: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -79,15 +80,15 @@ def bench(left: torch.Tensor, right: torch.Tensor, repeats: int) -> dict:
     for b in (1, 32):
         batch = svs_torch.StereoBatch.from_images(left[:b], right[:b], 276.0, 0.1075)
         grays = to_u8(torch.cat([left[:b], right[:b]]))
-        results[f"segment_pairs_svs_torch_B{b}"] = timed(lambda: segment_stereo(batch, config), repeats)
+        results[f"segment_pairs_svs_torch_B{b}"] = timed(lambda: segment_stereo(batch, config), repeats, b)
         results[f"segment_pairs_opencv_loop_B{b}"] = timed(
-            lambda: [opencv_segment(g, kernel, config.num_keep) for g in grays], repeats)
+            lambda: [opencv_segment(g, kernel, config.num_keep) for g in grays], repeats, b)
         seg = segment_stereo(batch, config)
         masks = torch.cat([seg.left.opened, seg.right.opened])
         masks_u8 = [m.astype(np.uint8) for m in masks[:, 0].numpy()]
-        results[f"components_images_svs_torch_B{b}"] = timed(lambda: connected_components_with_stats(masks), repeats)
+        results[f"components_images_svs_torch_B{b}"] = timed(lambda: connected_components_with_stats(masks), repeats, b)
         results[f"components_images_opencv_loop_B{b}"] = timed(
-            lambda: [cv2.connectedComponentsWithStats(m, connectivity=8) for m in masks_u8], repeats)
+            lambda: [cv2.connectedComponentsWithStats(m, connectivity=8) for m in masks_u8], repeats, b)
         if b == 1:
             float_masks = masks.to(torch.float32)
             results["components_images_kornia_unionfind_B1"] = timed(
@@ -123,8 +124,9 @@ def main() -> None:
     for name in ("unionfind", "maxpool100"):
         kornia_ms = results[f"components_images_kornia_{name}_B1"]["median_ms"] / 2
         ours = results["components_images_svs_torch_B1"]["median_ms"] / 2
+        runs = results[f"components_images_kornia_{name}_B1"]["runs"]  # (its own count: each run is slow)
         print(f"components    B= 1: kornia {name:10s} {kornia_ms:8.3f} ms/image  ratio kornia/svs_torch "
-              f"{kornia_ms / ours:6.1f}")
+              f"{kornia_ms / ours:6.1f}  (median of {runs} runs)")
     report = {"metadata": run_metadata(args.threads, size_wh=list(SIZE_WH)), "results": results}
     if args.json:
         write_text_whole(args.json, json.dumps(report, indent=2))

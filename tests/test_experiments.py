@@ -973,6 +973,20 @@ def test_an_experiment_stopped_by_ctrl_c_says_so_in_one_line(tmp_path, data_dir)
     assert list(tmp_path.iterdir()) == []
 
 
+def test_bench_segmentation_records_ms_per_pair_and_the_runs_each_median_is_of():
+    """Found by an audit: bench_segmentation.py's JSON gave the B = 32 rows' whole-batch time as "ms_per_pair" (121 ms
+    where its table printed 3.8 ms a pair), and its kornia rows were medians of 3 runs whatever --repeats said, the
+    JSON saying neither. Each row now has its time a pair and the count of runs its median is of."""
+    import bench_segmentation
+
+    images = torch.rand(32, 1, 240, 320, generator=torch.Generator().manual_seed(0))
+    results = bench_segmentation.bench(images, images.flip(-1), 1)
+    for key, row in results.items():
+        pairs = 32 if key.endswith("_B32") else 1
+        assert row["ms_per_pair"] == pytest.approx(row["median_ms"] / pairs), key
+        assert row["runs"] == (3 if "kornia" in key else 1), key
+
+
 def test_bench_capture_stopped_by_ctrl_c_says_so_in_one_line_and_ends_its_emulator():
     """Found by an audit: ``bench_capture.py`` stopped by Ctrl-C while reading frames ended in a KeyboardInterrupt
     traceback (from the driver's threads), the one benchmark not run through run_script. Now one line and exit
