@@ -65,10 +65,11 @@ def main() -> None:
     configs = {"svs_torch": PipelineConfig(),
                "svs_torch_compiled": replace(PipelineConfig(), surf=SurfConfig(compiled=True))}
     for name, config in configs.items():
-        for b in (1, 32):
-            batch = StereoBatch.from_images(left[:b], right[:b], 276.0, 0.1075)
+        for b in (1, 32):  # the loop's 32 pairs in batches of B (B = 1 timed the first pair alone: an audit)
+            batches = [StereoBatch.from_images(left[i:i + b], right[i:i + b], 276.0, 0.1075) for i in range(0, 32, b)]
             key = f"{name}_B{b}"
-            results[key] = timed(lambda: estimate_obstacle_depth(batch, config), args.repeats, pairs=b)
+            results[key] = timed(lambda: [estimate_obstacle_depth(batch, config) for batch in batches], args.repeats,
+                                 pairs=32)
     base = results["opencv_loop"]["ms_per_pair"]
     print(f"threads {args.threads}, 320x240 real pairs, whole pipeline, median of {args.repeats} runs")
     for key, value in results.items():

@@ -38,7 +38,7 @@ SIZE_WH = (320, 240)
 
 def timed(fn, repeats: int, pairs: int = 1) -> dict:
     """Median and spread of ``repeats`` runs of ``fn`` (one warm-up run first), in milliseconds; with the
-    median per pair when ``fn`` handles ``pairs`` pairs, and the count of runs the median is of."""
+    median per pair when ``fn`` handles ``pairs`` pairs, and the counts of runs the median is of and of pairs a run."""
     fn()
     runs = []
     for _ in range(repeats):
@@ -47,7 +47,7 @@ def timed(fn, repeats: int, pairs: int = 1) -> dict:
         runs.append((time.perf_counter() - start) * 1e3)
     median = statistics.median(runs)
     return {"median_ms": median, "min_ms": min(runs), "max_ms": max(runs), "ms_per_pair": median / pairs,
-            "runs": repeats}
+            "runs": repeats, "pairs": pairs}
 
 
 def load_pairs(data_dir: Path, count: int) -> tuple[torch.Tensor, torch.Tensor]:

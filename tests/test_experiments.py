@@ -987,6 +987,56 @@ def test_bench_segmentation_records_ms_per_pair_and_the_runs_each_median_is_of()
         assert row["runs"] == (3 if "kornia" in key else 1), key
 
 
+def _pairs_a_run(module, monkeypatch, name: str, pairs_of, stub=None) -> list[tuple[int, float]]:
+    """While ``module``'s main runs: for each call of its ``timed``, (the pairs it says a run holds, the pairs its
+    ``name`` function (counted by ``pairs_of(first argument)``; replaced by ``stub`` where given) saw a run)."""
+    real, real_timed, seen, rows = getattr(module, name), module.timed, [], []
+
+    def counted(*args, **kwargs):
+        seen.append(pairs_of(args[0]))
+        return (stub or real)(*args, **kwargs)
+
+    def timed(fn, repeats, pairs=1):
+        seen.clear()
+        row = real_timed(fn, repeats, pairs)
+        rows.append((row["pairs"], sum(seen) / (repeats + 1)))  # (one warm-up run first)
+        return row
+
+    monkeypatch.setattr(module, name, counted)
+    monkeypatch.setattr(module, "timed", timed)
+    return rows
+
+
+def test_the_bench_experiments_time_svs_torch_at_b_1_on_the_rivals_pairs(data_dir, monkeypatch):
+    """Found by an audit: bench_pipeline.py, bench_features.py and bench_dense.py timed svs_torch at B = 1 on the
+    first pair alone and set it against the OpenCV loop's mean over all 32 (bench_dense: --batch) pairs, in the
+    same row as 'x OpenCV' (a scene the pipeline runs twice, or an easy one, set the figure). Every row now runs the
+    rivals' pairs, in batches of B."""
+    import bench_dense
+    import bench_features
+    import bench_pipeline
+
+    images = torch.rand(32, 1, 60, 80, generator=torch.Generator().manual_seed(0))
+    for module in (bench_pipeline, bench_features):
+        monkeypatch.setattr(module, "load_pairs", lambda data, count: (images[:count], images[:count].flip(-1)))
+    monkeypatch.setattr(bench_pipeline, "opencv_pipeline", lambda *args: 0)
+    rows = {"pipeline": _pairs_a_run(bench_pipeline, monkeypatch, "estimate_obstacle_depth",
+                                     lambda batch: batch.batch_size, stub=lambda *args: None),
+            "features": _pairs_a_run(bench_features, monkeypatch, "extract_surf_features",
+                                     lambda images: images.shape[0] // 2, stub=lambda *args: None),
+            "dense": _pairs_a_run(bench_dense, monkeypatch, "estimate_dense_disparity", lambda left: left.shape[0])}
+    monkeypatch.setattr(sys, "argv", ["bench.py", "--data", str(data_dir), "--repeats", "1", "--threads", "1"])
+    bench_pipeline.main()
+    bench_features.main()
+    bench_dense.main(["--data", str(data_dir), "--repeats", "1", "--threads", "1", "--batch", "4"])
+    assert len(rows["pipeline"]) == 5 and len(rows["features"]) == 10 and len(rows["dense"]) == 12
+    for script, expected in (("pipeline", 32), ("features", 32), ("dense", 4)):
+        svs_rows = [row for row in rows[script] if row[1]]  # (the rivals' rows call no svs_torch function)
+        assert len(svs_rows) == {"pipeline": 4, "features": 8, "dense": 8}[script]
+        assert all(row == (expected, expected) for row in svs_rows), (script, rows[script])
+        assert all(row[0] == expected for row in rows[script]), (script, rows[script])
+
+
 def test_bench_capture_stopped_by_ctrl_c_says_so_in_one_line_and_ends_its_emulator():
     """Found by an audit: ``bench_capture.py`` stopped by Ctrl-C while reading frames ended in a KeyboardInterrupt
     traceback (from the driver's threads), the one benchmark not run through run_script. Now one line and exit
