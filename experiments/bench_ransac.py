@@ -90,14 +90,20 @@ def synthetic_matches(pairs: int, matches: int, outliers: tuple[float, float], n
 
 
 def timed(fn, repeats: int) -> tuple[dict, object]:
-    """Median, min and max wall time in ms of ``repeats`` runs after one warm-up; and the last output."""
+    """Median, min and max wall time in ms of ``repeats`` runs after one warm-up, and that count (``runs``); and the
+    last output."""
     output = fn()
     runs = []
     for _ in range(repeats):
         start = time.perf_counter()
         output = fn()
         runs.append((time.perf_counter() - start) * 1e3)
-    return {"median_ms": statistics.median(runs), "min_ms": min(runs), "max_ms": max(runs)}, output
+    return {"median_ms": statistics.median(runs), "min_ms": min(runs), "max_ms": max(runs), "runs": repeats}, output
+
+
+def per_pair_runs(repeats: int) -> int:
+    """The runs of svs_torch one pair a call, the slowest measurement: half of ``repeats``, at least one."""
+    return max(1, repeats // 2)
 
 
 def opencv_loop(data: dict, method: int, confidence: float) -> tuple[np.ndarray, np.ndarray]:
@@ -141,7 +147,7 @@ def bench_scenario(data: dict, confidence: float, repeats: int, seed: int) -> di
     timing, result = timed(batched, repeats)
     results["svs_torch_batched"] = {**timing, **quality(data, result.F, result.inliers),
                                     "mean_hypotheses": float(result.iterations.double().mean())}
-    timing, singles = timed(per_pair, max(1, repeats // 2))
+    timing, singles = timed(per_pair, per_pair_runs(repeats))
     models = torch.cat([r.F for r in singles])
     results["svs_torch_per_pair"] = {**timing, **quality(data, models, torch.cat([r.inliers for r in singles]))}
     for name, method in (("cv2_FM_RANSAC", cv2.FM_RANSAC), ("cv2_USAC_MAGSAC", cv2.USAC_MAGSAC)):
@@ -182,7 +188,7 @@ def main() -> None:
               "results": {}}
     print(f"{args.pairs} pairs x {args.matches} matches, threads {args.threads}, "
           f"OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY')}, load {os.getloadavg()[0]:.2f}; "
-          f"median of {args.repeats} runs (min-max)")
+          f"median of {args.repeats} runs (min-max; svs_torch_per_pair, the slowest, of {per_pair_runs(args.repeats)})")
     print(f"{'scenario':9s} {'method':19s} {'ms':>9s} {'(min-max)':>17s} {'pairs/s':>8s} {'vs FM_RANSAC':>12s} "
           f"{'vs MAGSAC':>9s} {'precision':>9s} {'recall':>7s} {'GT err px':>9s}")
     for name, scenario in SCENARIOS.items():

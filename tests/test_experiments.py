@@ -1037,6 +1037,19 @@ def test_the_bench_experiments_time_svs_torch_at_b_1_on_the_rivals_pairs(data_di
         assert all(row[0] == expected for row in rows[script]), (script, rows[script])
 
 
+def test_bench_ransac_records_the_runs_each_median_is_of():
+    """Found by an audit: bench_ransac.py printed 'median of 5 runs' over its table while svs_torch_per_pair's was of
+    2 (repeats // 2), the JSON recording 'repeats': 5 alone. Each row now records its runs, and the table's head
+    says the per-pair row's."""
+    import bench_ransac
+
+    data = bench_ransac.synthetic_matches(2, 40, bench_ransac.SCENARIOS["typical"]["outliers"], 0.5,
+                                          torch.Generator().manual_seed(0))
+    results = bench_ransac.bench_scenario(data, 0.99, 3, 0)
+    assert {name: row["runs"] for name, row in results.items()} == {
+        "svs_torch_batched": 3, "svs_torch_per_pair": 1, "cv2_FM_RANSAC": 3, "cv2_USAC_MAGSAC": 3}
+
+
 def test_bench_capture_stopped_by_ctrl_c_says_so_in_one_line_and_ends_its_emulator():
     """Found by an audit: ``bench_capture.py`` stopped by Ctrl-C while reading frames ended in a KeyboardInterrupt
     traceback (from the driver's threads), the one benchmark not run through run_script. Now one line and exit
