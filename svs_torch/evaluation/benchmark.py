@@ -301,6 +301,11 @@ def _metadata(threads: int, commit: str, **extra) -> dict:
             "numpy": numpy.__version__, "python": sys.version.split()[0], "cpu": cpu, "cpus": os.cpu_count(),
             # the cores this run could use (a container's or taskset's share), which "cpus" (the machine's) is not
             "cores_available": available_cores(), "threads": threads,
+            # The in-process part runs under this process's OpenMP wait policy (a shell's PASSIVE made guide's
+            # latency about half again as long) on these vector instructions (AVX-512 or AVX2): as the experiments
+            # record them (experiments/run_metadata.py), which this report did not (an audit).
+            "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
+            "cpu_capability": torch.backends.cpu.get_cpu_capability(),
             "load_average": os.getloadavg() if hasattr(os, "getloadavg") else None, **extra}
 
 

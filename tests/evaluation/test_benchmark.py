@@ -440,3 +440,19 @@ def test_each_batch_size_says_the_runs_its_median_is_of(monkeypatch):
     inside = benchmark.in_process(3, 1)
     assert asked[:4] == [(1, 3), (8, 3), (32, 3), (128, 1)]
     assert [(row["B"], row["runs"]) for row in inside["scaling"]] == asked[:4]
+
+
+def test_the_metadata_records_the_openmp_wait_policy_and_the_vector_instructions(monkeypatch):
+    """Found by an audit: the experiments record OMP_WAIT_POLICY and torch's CPU capability beside their times, the
+    benchmark did not, though its in-process part runs under the policy its shell exported (PASSIVE made guide's
+    frame time half again as long: README, "Speed today") and the README sets AVX-512 machines apart from AVX2 ones."""
+    import torch
+
+    from svs_torch.evaluation.benchmark import _metadata
+
+    monkeypatch.setenv("OMP_WAIT_POLICY", "PASSIVE")
+    metadata = _metadata(1, "abc1234")
+    assert metadata["omp_wait_policy"] == "PASSIVE"
+    assert metadata["cpu_capability"] == torch.backends.cpu.get_cpu_capability()
+    monkeypatch.delenv("OMP_WAIT_POLICY")
+    assert _metadata(1, "abc1234")["omp_wait_policy"] is None
