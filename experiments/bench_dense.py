@@ -50,8 +50,8 @@ def main(argv: list[str] | None = None) -> dict:
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     cv2.setNumThreads(args.threads)
+    real_left, real_right = load_pairs(Path(args.data), args.batch)  # (first: a folder it refuses, before any work)
     synthetic = random_obstacle_scenes(args.batch, 2, generator=torch.Generator().manual_seed(0)).batch
-    real_left, real_right = load_pairs(Path(args.data), args.batch)
     inputs = {"synthetic SVS": (synthetic.left, synthetic.right), "Middlebury": (real_left, real_right)}
     num_disparities = 16 * int(np.ceil(0.25 * 320 / 16))
     rivals = {"OpenCV StereoBM loop": cv2.StereoBM_create(numDisparities=num_disparities, blockSize=9),

@@ -51,8 +51,17 @@ def timed(fn, repeats: int, pairs: int = 1) -> dict:
 
 
 def load_pairs(data_dir: Path, count: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """``count`` real pairs at 320×240 (repeating the shared set if needed): left, right ``(count, 1, H, W)``."""
+    """``count`` real pairs at 320×240 (repeating the shared set if needed): left, right ``(count, 1, H, W)``. A
+    ``--data`` folder with no Middlebury pair is refused (an audit: a folder of KITTI alone, which ``--data`` takes,
+    was "ValueError: torch.cat(): expected a non-empty list of Tensors"; a missing default, a line naming data_dir)."""
+    from svs_torch.core.errors import InputError
+
+    if not Path(data_dir).is_dir():
+        raise InputError(f"--data: expected the shared data folder, got {str(data_dir)!r}: no such folder")
     paths = [p for p in list_shared_pairs(data_dir) if "middlebury" in str(p)]
+    if not paths:
+        raise InputError(f"--data: expected the shared data folder with Middlebury pairs (middlebury_*/), got "
+                         f"{str(data_dir)!r}, which holds none")
     batches = [resize_stereo_batch(load_stereo_pair(p), SIZE_WH) for p in paths[:count]]
     left = torch.cat([b.left for b in batches])
     right = torch.cat([b.right for b in batches])

@@ -343,3 +343,21 @@ def test_bench_capture_takes_only_the_sizes_a_board_sends():
         assert run.stderr.strip().splitlines()[-1] == (
             f"bench_capture.py: error: argument --sizes: expected comma-separated sizes a board sends (160x120, "
             f"320x240, 640x480, 1280x1024), got {sizes!r}")
+
+
+def test_the_bench_experiments_refuse_a_data_folder_without_middlebury_pairs(data_dir, tmp_path):
+    """Found by an audit: bench_segmentation/features/pipeline/dense/differentiable.py read Middlebury pairs only, but
+    took any shared data folder: one of KITTI alone ended in "ValueError: torch.cat(): expected a non-empty list of
+    Tensors" (bench_dense.py after rendering its scenes), and a missing default folder in a line naming data_dir.
+    Both are now a line naming --data, exit 2."""
+    import subprocess
+
+    (tmp_path / "kitti").symlink_to(data_dir / "kitti", target_is_directory=True)
+    env = {**os.environ, "PYTHONPATH": str(REPO_ROOT), "OMP_NUM_THREADS": "1", "SVS_TORCH_DATA": str(tmp_path / "no")}
+    for argv in (["--data", str(tmp_path)], []):
+        run = subprocess.run([sys.executable, str(REPO_ROOT / "experiments" / "bench_dense.py"), "--repeats", "1",
+                              *argv], env=env, capture_output=True, text=True, timeout=120)
+        assert run.returncode == 2 and "Traceback" not in run.stderr, run.stderr[-2000:]
+        expected = "with Middlebury pairs (middlebury_*/)" if argv else "no such folder"
+        assert run.stderr.startswith("bench_dense.py: error: --data: expected the shared data folder") and \
+            expected in run.stderr, run.stderr
