@@ -55,10 +55,15 @@ def load_pairs(data_dir: Path, count: int) -> tuple[torch.Tensor, torch.Tensor]:
     ``--data`` folder with no Middlebury pair is refused (an audit: a folder of KITTI alone, which ``--data`` takes,
     was "ValueError: torch.cat(): expected a non-empty list of Tensors"; a missing default, a line naming data_dir)."""
     from svs_torch.core.errors import InputError
+    from svs_torch.data.scene_batch import named_folder
 
     if not Path(data_dir).is_dir():
         raise InputError(f"--data: expected the shared data folder, got {str(data_dir)!r}: no such folder")
-    paths = [p for p in list_shared_pairs(data_dir) if "middlebury" in str(p)]
+    # Its data sets by their own folder's name: the whole path's held "middlebury" for every pair of a data folder
+    # kept at /data/middlebury_work/shared, KITTI's timed as Middlebury's (an audit).
+    # (named_folder: the folder as list_shared_pairs names its pairs, '..' resolved)
+    paths = [p for p in list_shared_pairs(data_dir) if p.relative_to(named_folder(data_dir)).parts[0].startswith(
+        "middlebury")]
     if not paths:
         raise InputError(f"--data: expected the shared data folder with Middlebury pairs (middlebury_*/), got "
                          f"{str(data_dir)!r}, which holds none")

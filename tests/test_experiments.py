@@ -1098,3 +1098,20 @@ def test_eval_segmentation_refuses_an_option_of_a_method_it_does_not_run(argv, o
     argv = [text.replace("{copy}", str(copy)) for text in argv]
     with pytest.raises(InputError, match=f"^{option.replace('{copy}', str(copy))}: its method is not in --methods"):
         eval_segmentation.main([*argv, "--data", str(data_dir)])  # (refused before any work)
+
+
+def test_bench_load_pairs_takes_middlebury_pairs_by_their_data_sets_folder(data_dir, tmp_path):
+    """Found by an audit: bench_segmentation.load_pairs (the Middlebury pairs of five benchmarks) took every pair
+    whose path held "middlebury", so a shared data folder kept under such a name (/data/middlebury_work/shared) gave
+    KITTI's pairs too. The data set's own folder is now what counts."""
+    import bench_segmentation
+    from svs_torch.core.errors import InputError
+
+    shared = tmp_path / "middlebury_work" / "shared"
+    shared.mkdir(parents=True)
+    (shared / "kitti").symlink_to(data_dir / "kitti", target_is_directory=True)
+    with pytest.raises(InputError, match="--data: expected the shared data folder with Middlebury pairs"):
+        bench_segmentation.load_pairs(shared, 2)
+    (shared / "middlebury_2001").symlink_to(data_dir / "middlebury_2001", target_is_directory=True)
+    left, right = bench_segmentation.load_pairs(shared, 40)
+    assert left.shape == right.shape == (40, 1, 240, 320)
