@@ -128,9 +128,11 @@ class SVSStereoCamera:
         roles = {name: self.versions[name].role for name in STEREO_ROLES}
         if roles == STEREO_ROLES:
             return
+        over_wifi = all(link.url.startswith("socket://") for link in self.links.values())
+        where = "port 10001 is the master" if over_wifi else "the master's serial device is the left camera's"
         message = (f"left/right: expected the left board ({self.links['left'].url}) to be the stereo master and the "
                    f"right ({self.links['right'].url}) the slave, got left {roles['left']}, right {roles['right']}; "
-                   "check the URLs (port 10001 is the master) and cover one lens to confirm")
+                   f"check the URLs ({where}) and cover one lens to confirm")
         if strict:
             raise CaptureError(message)
         warnings.warn(message, RuntimeWarning, stacklevel=3)

@@ -396,8 +396,17 @@ def test_banner_is_drained():
 def test_swapped_urls_warn_or_raise(emulator):
     with pytest.warns(RuntimeWarning, match="expected the left board .* to be the stereo master"):
         SVSStereoCamera(emulator.urls["right"], emulator.urls["left"], config=FAST).close()
-    with pytest.raises(CaptureError, match="cover one lens"):
+    with pytest.raises(CaptureError, match=r"check the URLs \(port 10001 is the master\) and cover one lens"):
         SVSStereoCamera(emulator.urls["right"], emulator.urls["left"], config=FAST, strict_roles=True)
+
+
+def test_swapped_serial_devices_are_not_told_of_a_wifi_port():
+    """An audit of a wired SVS: boards on two serial devices given the other way round were told to check 'port
+    10001', which only the WiFi bridge has."""
+    with EmulatorServer(left_port=0, right_port=0, source=flat_source, use_pty=True) as server, \
+            pytest.raises(CaptureError, match=r"\(the master's serial device is the left camera's\)") as caught:
+        SVSStereoCamera(server.pty_paths["right"], server.pty_paths["left"], config=FAST, strict_roles=True)
+    assert "10001" not in str(caught.value)
 
 
 def test_unreachable_url_names_camera():
