@@ -92,14 +92,15 @@ def got_words(link: object, received: bytes) -> str:
 
 def write_failure(url: str, err: BaseException) -> str:
     """How a link to ``url`` says that a write failed with ``err``; on a serial device, a write that timed out
-    (pyserial's ``SerialTimeoutException``) says why it may have. Why: a UART with RTS/CTS flow control (§1, always
-    on) sends no byte while the board holds its CTS line low (an adapter without those wires), and a wired SVS's user
-    read "link dropped while sending b'V' ...: write: Write timeout", no word of the wires (an audit)."""
+    (pyserial's ``SerialTimeoutException``) says why it may have. Why: a UART with RTS/CTS flow control (§1, on
+    unless ``--no-flow-control``) sends no byte while the board holds its CTS line low (an adapter without those
+    wires), and a wired SVS's user read "link dropped while sending b'V' ...: write: Write timeout", no word of the
+    wires (an audit)."""
     said = f"write: {err}"
     if "://" in url or type(err).__name__ != "SerialTimeoutException":
         return said
     return (f"{said} (the adapter sent no byte: RTS/CTS flow control is on, as the SVS's UART wants, so check that the "
-            "adapter's RTS and CTS wires reach the board's)")
+            "adapter's RTS and CTS wires reach the board's, or give --no-flow-control for a 3-wire cable)")
 
 
 class CaptureError(RuntimeError):

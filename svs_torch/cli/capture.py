@@ -40,7 +40,7 @@ from ..core.errors import InputError
 from ..core.files import error_text
 from ..core.workers import signals_held
 from .common import Terminated, add_retries_option, pair_count, quality_digit, timeout_seconds
-from .link_options import add_emulator_frame_options, baud_rate, emulator_record
+from .link_options import add_emulator_frame_options, add_uart_options, emulator_record
 from .pairs_folder import CALIBRATION_NAME, INDEX_NAME, drop_unused_pairs_folder, new_pairs_folder, open_pairs_index, \
     replay_command, save_pair
 from .progress import Progress
@@ -49,7 +49,6 @@ from .rig import add_calibration_option, calibration_from_args
 __all__ = ["CALIBRATION_NAME", "INDEX_NAME", "add_parser", "check_heap_in_view", "new_pairs_folder", "run", "save_pair"]
 
 PROG = "svs-depth capture"
-DEFAULT_BAUD = 2_304_000  # LinkConfig.baudrate (SVS_PROTOCOL.md §1); a literal so --help needs no capture import
 DEFAULT_TIMEOUT_S = 1.0  # LinkConfig.reply_timeout_s
 
 
@@ -85,10 +84,7 @@ def add_parser(subparsers: Any) -> None:
                              "calibration.json or pair images (also --out)")
     parser.add_argument("--quality", type=quality_digit, default=None, metavar="1-8",
                         help="JPEG quality digit, 1 best … 8 worst (default: leave the board's, 4 at power-up)")
-    parser.add_argument("--baud", type=baud_rate, default=DEFAULT_BAUD,
-                        help=f"the boards' UART speed, serial devices and WiFi (socket://) alike: it sets how long "
-                             f"a frame's bytes may take, 9600 to 12000000 (default: {DEFAULT_BAUD}; 115200 for a board "
-                             "built so)")
+    add_uart_options(parser)
     parser.add_argument("--timeout", type=timeout_seconds, default=DEFAULT_TIMEOUT_S, metavar="S",
                         help="seconds to wait for a reply (a frame's header) before re-sending, at most --retries "
                              f"times (default: {DEFAULT_TIMEOUT_S:g})")
@@ -357,7 +353,8 @@ def open_stereo_camera(args: argparse.Namespace, size: tuple[int, int], stack: c
     from ..capture.stereo import SVSStereoCamera
 
     left, right = board_urls(args, size, stack)
-    config = LinkConfig(baudrate=args.baud, reply_timeout_s=args.timeout, max_retries=args.retries)
+    config = LinkConfig(baudrate=args.baud, reply_timeout_s=args.timeout, max_retries=args.retries,
+                        rtscts=not args.no_flow_control)
     return stack.enter_context(SVSStereoCamera(left, right, size, quality=args.quality, config=config,
                                                first_index=first_index))
 

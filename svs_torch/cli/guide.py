@@ -13,7 +13,7 @@ from .common import (Terminated, add_retries_option, finite_float, non_negative_
                      pair_count_or_zero, positive_float, positive_int, quality_digit, terminated_on_sigterm,
                      timeout_seconds)
 from .hangup import HungUp, hung_up_on_sighup
-from .link_options import add_emulator_frame_options, baud_rate, emulator_record
+from .link_options import add_emulator_frame_options, add_uart_options, emulator_record
 from .rig import add_calibration_option, calibration_from_args
 from .segment import add_floor_option
 
@@ -142,10 +142,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     _add_walker_options(parser)
     parser.add_argument("--size", default="320x240", metavar="WxH",
                         help="frame size: 160x120, 320x240, 640x480 or 1280x1024 (default: 320x240)")
-    parser.add_argument("--baud", type=baud_rate, default=2_304_000,
-                        help="the boards' UART speed, serial devices and WiFi (socket://) alike: it sets how long "
-                             "a frame's bytes may take, 9600 to 12000000 (default: 2304000; 115200 for a board built "
-                             "so)")
+    add_uart_options(parser)
     # capture's 1 s: at 2 s one grab the board left unanswered (SVS_PROTOCOL.md §3) kept the walker unwarned 2.2 s,
     # past --blind-s, and had "Cannot see ahead" and "Seeing ahead again" said for it (an audit of the device side)
     parser.add_argument("--timeout", type=timeout_seconds, default=1.0, metavar="S",

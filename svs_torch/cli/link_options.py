@@ -10,7 +10,10 @@ import argparse
 
 from .common import _number, noise_levels
 
-__all__ = ["MAX_BAUD", "MIN_BAUD", "add_emulator_frame_options", "baud_rate", "emulator_record"]
+__all__ = ["DEFAULT_BAUD", "MAX_BAUD", "MIN_BAUD", "add_emulator_frame_options", "add_uart_options", "baud_rate",
+           "emulator_record"]
+
+DEFAULT_BAUD = 2_304_000  # LinkConfig.baudrate (SVS_PROTOCOL.md §1); a literal so --help needs no capture import
 
 #: The slowest ``--baud`` taken: 9600, the slowest standard rate a serial camera is run at, already allows a
 #: 320x240 frame up to 6 minutes (LinkConfig.frame_attempt_timeout_s). ``--baud 1`` was taken, and allowed each
@@ -28,6 +31,19 @@ def baud_rate(text: str) -> int:
     if not MIN_BAUD <= value <= MAX_BAUD:
         raise argparse.ArgumentTypeError(f"expected a UART speed from {MIN_BAUD} to {MAX_BAUD} baud, got {text!r}")
     return value
+
+
+def add_uart_options(parser: argparse.ArgumentParser) -> None:
+    """``--baud`` and ``--no-flow-control``, the boards' UART as ``capture`` and ``guide`` reach it."""
+    parser.add_argument("--baud", type=baud_rate, default=DEFAULT_BAUD,
+                        help=f"the boards' UART speed, serial devices and WiFi (socket://) alike: it sets how long "
+                             f"a frame's bytes may take, {MIN_BAUD} to {MAX_BAUD} (default: {DEFAULT_BAUD}; 115200 "
+                             "for a board built so)")
+    # Why: the SVS's UART wants RTS/CTS (§1), but many USB serial adapters wire TX, RX and ground only; with flow
+    # control on, such a cable's CTS never rises and every command's write timed out, with no way to turn it off.
+    parser.add_argument("--no-flow-control", action="store_true",
+                        help="serial devices: no RTS/CTS hardware flow control, for a 3-wire cable (TX, RX, "
+                             "ground); the SVS's UART expects it, so use a lower --baud if frames arrive damaged")
 
 
 def add_emulator_frame_options(parser: argparse.ArgumentParser) -> None:

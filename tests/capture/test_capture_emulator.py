@@ -941,9 +941,34 @@ def test_cli_defaults_match_link_defaults():
 
     from svs_torch.cli import build_parser, common
 
-    assert (capture.DEFAULT_BAUD, capture.DEFAULT_TIMEOUT_S) == (LinkConfig().baudrate, LinkConfig().reply_timeout_s)
+    from svs_torch.cli import link_options
+
+    assert (link_options.DEFAULT_BAUD, capture.DEFAULT_TIMEOUT_S) == (LinkConfig().baudrate,
+                                                                      LinkConfig().reply_timeout_s)
     assert common.DEFAULT_RETRIES == LinkConfig().max_retries
     assert build_parser().parse_args(["guide", "--emulator", "--retries", "5"]).retries == 5
+    for argv in (["capture", "--emulator", "--out", "run"], ["guide", "--emulator"]):
+        assert build_parser().parse_args(argv).no_flow_control is False
+
+
+@pytest.mark.parametrize("option, rtscts", [((), True), (("--no-flow-control",), False)])
+def test_flow_control_can_be_turned_off_for_a_three_wire_cable(tmp_path, option, rtscts):
+    """An audit of a wired SVS: RTS/CTS flow control was always on (as the SVS's UART wants, §1), so a USB serial
+    adapter wired TX, RX and ground only, whose CTS never rises, timed out on every write, with no option to turn it
+    off. ``--no-flow-control`` (capture and guide) opens the serial devices without it."""
+    import contextlib
+
+    from svs_torch.cli import build_parser
+    from svs_torch.cli.capture import open_stereo_camera
+
+    with EmulatorServer(left_port=0, right_port=0, source=flat_source, use_pty=True) as server, \
+            contextlib.ExitStack() as stack:
+        args = build_parser().parse_args(["capture", "--left", server.pty_paths["left"], "--right",
+                                          server.pty_paths["right"], "--out", str(tmp_path / "run"), *option])
+        camera = open_stereo_camera(args, (320, 240), stack)
+        assert camera.config.rtscts is rtscts
+        assert all(link._serial.rtscts is rtscts for link in camera.links.values())
+        assert camera.grab_pair().left.size_wh == (320, 240)
 
 
 @pytest.mark.parametrize("argv, message", [

@@ -271,7 +271,8 @@ def test_a_serial_write_that_times_out_names_the_flow_control_wires(monkeypatch)
         try:
             monkeypatch.setattr(type(link._serial), "write", stalled)
             with pytest.raises(CaptureError, match=r"left camera \(/dev/.*\): link dropped while sending b'V' .*"
-                                                   r"write: Write timeout \(.*RTS/CTS flow control is on.*RTS and CTS"):
+                                                   r"write: Write timeout \(.*RTS/CTS flow control is on.*RTS and CTS"
+                                                   r".*--no-flow-control for a 3-wire cable"):
                 link.identify()
         finally:
             monkeypatch.undo()
