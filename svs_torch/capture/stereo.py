@@ -202,12 +202,13 @@ class SVSStereoCamera:
         """Grab pairs continuously in a background thread; yield each time ``batch_size`` new pairs arrived.
 
         Each item holds the ``batch_size`` most recent pairs; pairs that arrived while the consumer was busy and
-        are no longer among them are counted in ``num_dropped``. Stops after ``num_batches`` (None: never) or when
-        the generator is closed; a capture error in the background is raised here (and no batch within
-        ``batch_size`` times :meth:`pair_timeout_s`). With ``idle_s``, None is yielded each ``idle_s`` seconds no
-        batch came in the meantime: the consumer can act on the wait (``guide`` says it cannot see when the link
-        froze while the driver retried, instead of seconds of silence). Do not call :meth:`grab_pair` while
-        streaming.
+        are no longer among them are counted in ``num_dropped`` (at most ``batch_size`` pairs wait untaken: a
+        consumer kept busy, such as guide whose stdout stalled, does not fill the memory). Stops after
+        ``num_batches`` (None: never) or when the generator is closed; a capture error in the background is raised
+        here (and no batch within ``batch_size`` times :meth:`pair_timeout_s`). With ``idle_s``, None is yielded
+        each ``idle_s`` seconds no batch came in the meantime: the consumer can act on the wait (``guide`` says it
+        cannot see when the link froze while the driver retried, instead of seconds of silence). Do not call
+        :meth:`grab_pair` while streaming.
         """
         if not isinstance(batch_size, int) or batch_size < 1:
             raise InputError(f"batch_size: expected a positive integer, got {batch_size!r}")
@@ -239,7 +240,7 @@ class SVSStereoCamera:
     def _stream_loop(self, state: _Stream) -> None:
         try:
             while not state.stopped:
-                state.arrived.put(self.grab_pair())
+                state.put(self.grab_pair())
         except Exception as err:  # handed to the consumer, which raises it
             state.arrived.put(err)
 
@@ -300,6 +301,21 @@ class _Stream:
         self.new = 0  # pairs taken off the queue since the last batch (the consumer's alone)
         self.arrived: queue.SimpleQueue[StereoPair | BaseException] = queue.SimpleQueue()  # (or the error)
         self.stopped = False
+        self.discarded = 0  # pairs the grabbing thread took off the queue untaken (:meth:`put`; that thread's alone)
+        self.discarded_seen = 0  # of them, those counted dropped in a batch (the consumer's alone)
+
+    def put(self, pair: StereoPair) -> None:
+        """The grabbing thread's: queue ``pair``, and take the oldest off while more than ``batch_size`` wait (counted
+        dropped at the next batch). Why: a consumer that took none kept every pair grabbed meanwhile: ``guide
+        --json`` whose reader stalled (its write blocked) grew by 3.2 MB a second, without bound (an audit of long
+        runs). The queue holds pairs alone until the thread's error, its last item."""
+        self.arrived.put(pair)
+        while self.arrived.qsize() > self.batch_size:
+            try:
+                self.arrived.get_nowait()
+            except queue.Empty:  # the consumer took them meanwhile
+                return
+            self.discarded += 1
 
     def take(self, timeout_s: float) -> tuple[tuple[StereoPair, ...], int] | None:
         """The latest pairs and how many were dropped, once ``batch_size`` new ones came; None after ``timeout_s``
@@ -313,7 +329,9 @@ class _Stream:
             except queue.Empty:
                 if waiting:
                     return None
-                dropped, self.new = self.new - self.batch_size, 0
+                discarded = self.discarded  # (read once: the grabbing thread may add one meanwhile)
+                dropped = self.new - self.batch_size + discarded - self.discarded_seen
+                self.new, self.discarded_seen = 0, discarded
                 return tuple(self.recent), dropped
             if isinstance(item, BaseException):
                 raise item
