@@ -234,11 +234,12 @@ class PipelineConfig:
     # Shelves at digit 6 (0 -> 91 %) and changes nothing else, while 30 or 40 range PianoL native at digit 1 15 % off.
     verify_many_inliers: int | None = 60
     verify_many_inliers_min_agreeing: int = 1
-    # 2026-11-25, on the tuning set for camera frames (real_rig.py --splits tuned --contrast 0.5 --no-rival, and
-    # --set verify_unanimous_min_inliers=none): digit 8 65.59 -> 85.47 % (Piano and Shelves 0 -> 98.9 / 99.9, each
-    # 3 of 3 measured inliers confirmed), no other row changed, full contrast unchanged at both sizes. Without the
-    # 20 inliers a synthetic negative (11 inliers, 3 of 3) was verified; a share of 0.75 ranged PianoL at digit 2
-    # 57 % off; verify_views.py at these values: every negative set as before.
+    # 2026-11-25, on the tuning set for camera frames (experiments/real_rig.md's opening: real_rig.py --splits tuned
+    # --contrast 0.5 --no-rival, and --set verify_unanimous_min_inliers=none): digit 8 65.59 -> 85.47 % (Piano and
+    # Shelves 0 -> 98.9 / 99.9, each 3 of 3 measured inliers confirmed), no other row changed, full contrast
+    # unchanged at both sizes. Without the 20 inliers a synthetic negative (11 inliers, 3 of 3) was verified; a
+    # share of 0.75 ranged PianoL at digit 2 57 % off; verify_views.py at these values: every negative set as
+    # before.
     verify_unanimous_min_inliers: int | None = 20
     verify_unanimous_min_agreeing: int = 3
     verify_whole_view: bool = True  # see ranging._vouched_over_whole_view; experiments/real_rig.md (2026-11-28)
