@@ -1283,3 +1283,29 @@ def test_opening_turns_off_a_caption_overlay_an_earlier_session_left_on():
         with SVSStereoCamera(server.urls["left"], server.urls["right"], config=FAST, max_frame_gap_s=None) as cam:
             cam.grab_pair()
         assert not server.cameras["left"].overlay and not server.cameras["right"].overlay
+
+
+def test_emulator_stops_on_sigterm_while_it_prepares_its_keyframes(monkeypatch, capsys):
+    """Found by an audit of the emulator as a tool: a SIGTERM (``kill``, ``timeout``, a service manager) while
+    ``--prepare 1280x1024`` rendered was not heeded until every keyframe was rendered (17 s on an idle machine); then
+    the URLs were printed and the emulator ended. Now it ends within a poll, serving nothing. The signal is sent
+    from inside a render that takes 10 s, through the handler main installs."""
+    import signal as signals
+
+    import hw.emulator as emulator
+
+    handlers = {}
+    monkeypatch.setattr(emulator.signal, "signal", lambda sig, handler: handlers.__setitem__(sig, handler))
+    began = []
+
+    def slow_prepare(self, size_wh, timeout_s=60.0, *, complete=True):
+        if not began:
+            began.append(time.monotonic())
+            handlers[signals.SIGTERM](signals.SIGTERM, None)  # SIGTERM arrives as the first keyframes render
+        left_s = began[0] + 10.0 - time.monotonic()
+        time.sleep(max(0.0, min(timeout_s, left_s)))
+        return left_s <= timeout_s
+
+    monkeypatch.setattr(SyntheticSource, "prepare", slow_prepare)
+    assert emulator.main(["--prepare", "1280x1024", "--left-port", "0", "--right-port", "0"]) == 0
+    assert time.monotonic() - began[0] < 2.0 and capsys.readouterr().out == ""
