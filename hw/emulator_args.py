@@ -130,6 +130,9 @@ def _check_values(p: argparse.ArgumentParser, args: argparse.Namespace) -> None:
                                "--heap-ahead-m")
         except ValueError as err:  # svs_torch's InputError is a ValueError
             p.error(str(err))
+    if args.images is not None and not args.images.strip():
+        # An empty value (an unset shell variable) served the synthetic obstacles instead, unsaid.
+        p.error(f"--images: expected a folder of left/right image pairs, got {args.images!r}")
     if args.floor_height_m is not None and (args.images or args.simple_frames):
         # The floor was ignored: the frames showed none, and nothing said so.
         p.error("--floor-height-m: only the synthetic frames of svs_torch's renderer have a floor, not "

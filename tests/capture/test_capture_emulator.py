@@ -1062,6 +1062,9 @@ def test_cli_capture_bad_arguments(tmp_path, capsys, argv, message):
     # The stand-in renderer and an image folder draw no floor: the option was ignored without a word (an audit).
     (["--floor-height-m", "1.3", "--simple-frames"], "--floor-height-m: only the synthetic frames"),
     (["--floor-height-m", "1.3", "--images", "."], "--floor-height-m: only the synthetic frames"),
+    # An empty folder name (``--images "$DIR"``, DIR unset) served the synthetic obstacles, unsaid (an audit).
+    (["--images", ""], "--images: expected a folder of left/right image pairs, got ''"),
+    (["--images", " "], "--images: expected a folder of left/right image pairs, got ' '"),
 ])
 def test_emulator_refuses_values_that_killed_a_board_thread(capsys, argv, message):
     """Found by an audit: these ran, and a board's thread died at its first grab (a ZeroDivisionError, the frame
