@@ -12,6 +12,7 @@ Run: ``python -m hw.emulator [--pty] [--images DIR] [fault options]``; Ctrl-C st
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import select
@@ -26,7 +27,7 @@ from .emulator_state import CameraState, Faults, Reply
 from .frames import FrameSource, ImageFolderSource, ObstacleTrack, SyntheticSource
 from svs_torch.data.rig_deviation import RigDeviation
 
-__all__ = ["SVS_LINK_BYTES_PER_S", "EmulatorServer", "main"]
+__all__ = ["SVS_LINK_BYTES_PER_S", "EmulatorServer", "ListenError", "main"]
 
 _POLL_S = 0.05  # how often the I/O threads look at the stop flag, seconds
 _PREPARE_TIMEOUT_S = 600.0  # the most --prepare waits for one size's keyframes, seconds
@@ -199,6 +200,24 @@ class _BoardPort(threading.Thread):
         return True
 
 
+class ListenError(OSError):
+    """A board's TCP server that could not listen on ``host`` port ``port``: ``camera`` (``"left"``/``"right"``),
+    and ``option``, the command line's option to change (``--host`` for an address that is not this machine's)."""
+
+    def __init__(self, err: OSError, camera: str, host: str, port: int) -> None:
+        super().__init__(err.errno, err.strerror)
+        self.camera, self.port = camera, port
+        # socket.create_server re-raises a name it cannot resolve as a plain OSError of getaddrinfo's negative code.
+        host_wrong = isinstance(err, socket.gaierror) or (err.errno or 0) < 0 or err.errno == errno.EADDRNOTAVAIL
+        self.option = "--host" if host_wrong else f"--{camera}-port"
+        reason = str(err.strerror or err).split(" (while attempting")[0]
+        hint = "; another program listens there (0 picks a free port)" if err.errno == errno.EADDRINUSE else ""
+        self.message = f"the {camera} board cannot listen on {host} port {port}: {reason}{hint}"
+
+    def __str__(self) -> str:
+        return self.message
+
+
 class EmulatorServer:
     """Two emulated boards (left = master, right = slave) served over TCP on ``host``, optionally on ptys too.
 
@@ -244,10 +263,10 @@ class EmulatorServer:
             for (name, state), port in zip(self.cameras.items(), (left_port, right_port)):
                 self._ports[name] = _BoardPort(state, host, port, use_pty, banner, send_timeout_s, self._stop,
                                                link_bytes_per_s)
-        except OSError:
+        except OSError as err:  # said with the board and port (the option a user gives), not errno's words alone
             for board in self._ports.values():
                 board.close()
-            raise
+            raise ListenError(err, name, host, port) from err
         self.host = host
         self._started = False
 
@@ -336,9 +355,9 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as err:  # the image folder (no pairs, an image that does not decode)
         print(f"hw.emulator: error: {err}", file=sys.stderr)
         return 2
-    except OSError as err:  # a port in use
-        print(f"hw.emulator: error: {err}", file=sys.stderr)
-        return 1
+    except ListenError as err:  # a port in use, an address not this machine's: the option to change
+        print(f"hw.emulator: error: {err.option}: {err}", file=sys.stderr)
+        return 2
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     try:

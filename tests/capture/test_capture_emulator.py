@@ -1312,3 +1312,28 @@ def test_emulator_stops_on_sigterm_while_it_prepares_its_keyframes(monkeypatch, 
     monkeypatch.setattr(SyntheticSource, "prepare", slow_prepare)
     assert emulator.main(["--prepare", "1280x1024", "--left-port", "0", "--right-port", "0"]) == 0
     assert time.monotonic() - began[0] < 2.0 and capsys.readouterr().out == ""
+
+
+@pytest.mark.parametrize("board", ["left", "right"])
+def test_emulator_names_the_option_of_a_port_it_cannot_listen_on(capsys, board):
+    """Found by an audit of the emulator as a tool: a port another program held ended "hw.emulator: error: [Errno 98]
+    Address already in use (while attempting to bind on address ('127.0.0.1', N))", exit 1, naming neither the
+    board nor the option; an address not this machine's said "[Errno 99] Cannot assign requested address". Each is
+    one line naming the option to change now, exit 2 as for any other bad value, nothing served, the ptys closed."""
+    from hw.emulator import ListenError
+    from hw.emulator import main as emulator_main
+
+    held = socket.create_server(("127.0.0.1", 0))
+    try:
+        port = held.getsockname()[1]
+        ports = {"left": "0", "right": "0", board: str(port)}
+        status = emulator_main(["--pty", "--left-port", ports["left"], "--right-port", ports["right"]])
+    finally:
+        held.close()
+    err = capsys.readouterr().err
+    assert status == 2 and err.count("\n") == 1, err
+    assert f"error: --{board}-port: the {board} board cannot listen on 127.0.0.1 port {port}: Address already in " \
+           "use; another program listens there (0 picks a free port)" in err
+    assert emulator_main(["--host", "192.0.2.1", "--left-port", "0", "--right-port", "0"]) == 2  # TEST-NET-1
+    assert "error: --host: the left board cannot listen on 192.0.2.1 port 0: " in capsys.readouterr().err
+    assert issubclass(ListenError, OSError)  # what callers of EmulatorServer caught stays caught
