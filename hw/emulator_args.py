@@ -47,7 +47,8 @@ def parse_args(argv: list[str] | None, description: str, link_bytes_per_s: float
     p.add_argument("--simple-frames", action="store_true", help="fast stand-in renderer instead of svs_torch's")
     p.add_argument("--prepare", metavar="WxH[,WxH]", default="",
                    help="render every synthetic keyframe at these sizes before serving (exact depths from the start)")
-    p.add_argument("--holdoff-ms", type=non_negative_float, default=1.0, help="input discarded after a reply, ms")
+    p.add_argument("--holdoff-ms", type=_holdoff_ms, default=1.0, metavar="MS",
+                   help=f"input discarded after each reply, ms, at most {MAX_DELAY_S * 1000:.0f} (default %(default)s)")
     p.add_argument("--link-rate", type=_link_rate, default=link_bytes_per_s, metavar="BYTES/S",
                    help="each board's replies paced to this many bytes a second, as the SVS's 2,304,000-baud "
                         f"UART sends them, at least {MIN_LINK_BYTES_PER_S} (default %(default)s); 0: as fast as the "
@@ -197,6 +198,15 @@ def _delay_seconds(text: str) -> float:
     value = non_negative_float(text)
     if value > MAX_DELAY_S:
         raise argparse.ArgumentTypeError(f"expected seconds from 0 to {MAX_DELAY_S:g} (a day), got {text!r}")
+    return value
+
+
+def _holdoff_ms(text: str) -> float:
+    """argparse type of ``--holdoff-ms``: 0 to :data:`MAX_DELAY_S` in ms. Why: 1e300 was taken, and each board
+    answered its first command and discarded every later one, the emulator looking alive."""
+    value = non_negative_float(text)
+    if value > MAX_DELAY_S * 1000:
+        raise argparse.ArgumentTypeError(f"expected ms from 0 to {MAX_DELAY_S * 1000:.0f} (a day), got {text!r}")
     return value
 
 

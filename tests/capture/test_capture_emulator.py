@@ -1095,6 +1095,8 @@ def test_emulator_prepares_only_the_sizes_a_board_sends(capsys):
     (["--grab-delay", "1e300"], "argument --grab-delay: expected seconds from 0 to 86400 (a day), got '1e300'"),
     (["--drip-delay", "1e300"], "argument --drip-delay: expected seconds from 0 to 86400 (a day), got '1e300'"),
     (["--link-rate", "1e-300"], "argument --link-rate: expected 0 (unpaced) or at least 960 bytes a second"),
+    # Taken before, and each board answered its first command, then discarded every other one (an audit).
+    (["--holdoff-ms", "1e300"], "argument --holdoff-ms: expected ms from 0 to 86400000 (a day), got '1e300'"),
 ])
 def test_emulator_refuses_waits_past_the_platforms_longest(capsys, argv, message):
     """Found by an audit of the device side: these were taken, and each board's thread died at its first grab
@@ -1104,6 +1106,7 @@ def test_emulator_refuses_waits_past_the_platforms_longest(capsys, argv, message
 
     assert parse_args(["--grab-delay", "86400", "--link-rate", "960"], "", 1.0).grab_delay == 86400
     assert parse_args(["--link-rate", "0"], "", 1.0).link_rate == 0
+    assert parse_args(["--holdoff-ms", "86400000"], "", 1.0).holdoff_ms == 86400000
     with pytest.raises(SystemExit) as stopped:
         parse_args(argv, "", 1.0)
     assert stopped.value.code == 2 and message in capsys.readouterr().err
