@@ -246,7 +246,7 @@ class GuideSession:
         "Cannot see ahead" said for them goes on :data:`CHECK_CAMERA` of the later board, once a run for each: a right
         board 0.4 s late on every grab had the walker hear "Cannot see ahead" alone, unlike a frozen one (an audit)."""
         gap_s = item.pairs[0].time_between_frames_s
-        late = "right" if gap_s > 0 else "left"  # (right's arrival minus left's)
+        late = "right" if gap_s > 0 else "left"  # (right's header minus left's: stereo_frames.time_between_frames_s)
         check = None if late in self.cameras_checked else CHECK_CAMERA.format(late)
         said = self._not_ranged(item, "FRAMES_APART", f"frames {abs(gap_s):.2f} s apart: not ranged", "frames_apart",
                                 then=check, time_between_frames_s=round(gap_s, 3), num_dropped=item.num_dropped)

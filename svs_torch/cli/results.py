@@ -141,6 +141,8 @@ def _code_version_notes(summaries: list[dict]) -> list[str]:
     """A note of each configuration whose rows come from several code versions, and one where the configurations,
     each of one version, are of different ones: a sweep resumed after a code change ranked the new configurations
     against the old ones without a word (an audit), the difference between them perhaps the code's."""
+    from ..evaluation.kept_rows import named
+
     notes = [f"note: {s['config_id']}'s rows come from {len(s['code_versions'])} code versions "
              f"({', '.join(map(str, s['code_versions']))}): rerun into a new --db to compare like with like"
              for s in summaries if len(s["code_versions"]) > 1]
@@ -149,8 +151,7 @@ def _code_version_notes(summaries: list[dict]) -> list[str]:
         if len(s["code_versions"]) == 1:
             by_version.setdefault(str(s["code_versions"][0]), []).append(s["config_id"])
     if not notes and len(by_version) > 1:
-        listed = "; ".join(f"{version}: {', '.join(ids[:3])}{f' and {len(ids) - 3} more' if len(ids) > 3 else ''}"
-                           for version, ids in by_version.items())
+        listed = "; ".join(f"{version}: {named(ids)}" for version, ids in by_version.items())
         notes.append(f"note: the configurations were measured by {len(by_version)} code versions ({listed}): what "
                      f"differs between them may be the code's; rerun into a new --db to compare like with like")
     return notes
