@@ -32,7 +32,10 @@ __all__ = [
     "check_generator",
     "check_percentiles",
     "check_positive_scalar",
+    "check_float_dtype",
+    "check_stereo_views",
     "real_or_nan",
+    "FLOAT32_MAX",
 ]
 
 
@@ -72,6 +75,9 @@ def check_shape(tensor: torch.Tensor, name: str, spec: Sequence[str | int]) -> d
 #: The floating-point dtypes the pipeline computes in. Half precision is refused: the integral image of a 64 x 64
 #: image sums past 2048, where float16 stops holding whole numbers, and CPU kernels such as cdist do not exist for it.
 FLOAT_DTYPES = (torch.float32, torch.float64)
+#: The largest float32: a setting that becomes a float32 tensor's value is bounded by it (1e39 passed its check,
+#: then made every pair an ERROR row, "value cannot be converted to type float without overflow"; an audit of --set).
+FLOAT32_MAX = float(torch.finfo(torch.float32).max)
 
 
 def check_float_dtype(dtype: object, name: str = "dtype") -> None:

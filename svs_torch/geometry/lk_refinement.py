@@ -11,8 +11,8 @@ from dataclasses import asdict, dataclass
 import torch
 import torch.nn.functional as F
 
-from ..core.checks import (InputError, check_device, check_dtype, check_finite_where, check_image, check_shape,
-                           real_or_nan)
+from ..core.checks import (FLOAT32_MAX, InputError, check_device, check_dtype, check_finite_where, check_image,
+                           check_shape, real_or_nan)
 from ..core.kernels.checks import check_nonempty
 from ..core.numerics import safe_sqrt
 from ..core.types import Matches
@@ -26,9 +26,8 @@ __all__ = ["LK_GRID_HALF_WIDTH", "MAX_LK_ITERATIONS", "MatchRefinementConfig", "
 
 #: Half-width, in samples, of the patch grid of :func:`refine_matches_lk` (a 13 × 13 grid).
 LK_GRID_HALF_WIDTH = 6
-#: The largest patch radius: the radii are a float32 tensor (``max_radius_px`` 1e39 passed the check, then made every
-#: pair an ERROR row, "value cannot be converted to type float without overflow"; an audit of --set).
-_MAX_RADIUS_PX = float(torch.finfo(torch.float32).max)
+#: The largest patch radius: the radii are a float32 tensor (:data:`~svs_torch.core.checks.FLOAT32_MAX`).
+_MAX_RADIUS_PX = FLOAT32_MAX
 
 
 @dataclass(frozen=True)

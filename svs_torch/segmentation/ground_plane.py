@@ -41,7 +41,7 @@ from typing import NamedTuple
 
 import torch
 
-from ..core.checks import check_count, check_generator, check_real, real_or_nan
+from ..core.checks import FLOAT32_MAX, check_count, check_generator, check_real, real_or_nan
 from ..core.errors import InputError
 from ..core.kernels.checks import canonical_bool
 from ..core.mask_reductions import any_along
@@ -129,7 +129,7 @@ class GroundPlaneConfig:
         for name in ("min_share", "lower_rows_fraction", "max_behind_share"):
             if not 0 < real_or_nan(getattr(self, name)) <= 1:
                 raise InputError(f"{name}: expected a share in (0, 1], got {getattr(self, name)!r}")
-        most = torch.finfo(torch.float32).max  # (a float32 tensor: 1e39 failed in torch.full, an ERROR row a pair)
+        most = FLOAT32_MAX  # (a float32 tensor: 1e39 failed in torch.full, an ERROR row a pair)
         if not (0 < real_or_nan(self.tolerance_px) <= most and 0 < real_or_nan(self.noisy_tolerance_px) <= most
                 and 0 <= real_or_nan(self.tolerance_fraction) < 1):
             raise InputError(f"tolerance_px, noisy_tolerance_px, tolerance_fraction: expected each of the first two in "
