@@ -15,7 +15,10 @@ Output, in ``--out-dir`` (alias ``--out``):
   (``"left"``/``"right"``: that camera's frame came again, pixel for pixel, while the other's changed; ``"both"``:
   both frames came again for 3 s; by ``guide``'s rule, :class:`~svs_torch.capture.frozen.FrozenCameraWatch`; else
   null; an older index has no such key), ``emulator`` (``--emulator``'s noise, loose rig, floor and heap,
-  :func:`~svs_torch.cli.link_options.emulator_record`; null from boards; an older index has no such key) and
+  :func:`~svs_torch.cli.link_options.emulator_record`; null from boards; an older index has no such key),
+  ``cameras_swapped`` (true: the left board answered ``V`` as other than the stereo master or the right as other
+  than the slave, the URLs likely the other way round; null: a build that names no role;
+  :func:`~svs_torch.cli.capture_checks.cameras_swapped`; an older index has no such key) and
   ``rig_calibration`` (``"calibration.json"`` with ``--calibration``, else null);
 * ``calibration.json`` with ``--calibration``: a copy of the rig's calibration file (the frames stay as received;
   ``estimate --pairs OUT/index.jsonl --calibration OUT/calibration.json`` rectifies them). At the end capture prints
@@ -32,13 +35,13 @@ import contextlib
 import math
 import sys
 from pathlib import Path
-from types import SimpleNamespace
 from typing import Any
 
 from ..core.camera import parse_size
 from ..core.errors import InputError
 from ..core.files import error_text
 from ..core.workers import signals_held
+from .capture_checks import PairChecks
 from .common import Terminated, add_retries_option, pair_count, quality_digit, timeout_seconds
 from .link_options import add_emulator_frame_options, add_uart_options, emulator_record
 from .pairs_folder import CALIBRATION_NAME, INDEX_NAME, drop_unused_pairs_folder, new_pairs_folder, open_pairs_index, \
@@ -239,7 +242,7 @@ def run(args: argparse.Namespace) -> int:
 
                 write_calibration(out / CALIBRATION_NAME, calibration, "--out-dir")
             progress = stack.enter_context(Progress(args.count, "capture"))
-            checks = _PairChecks(camera.max_frame_gap_s)
+            checks = PairChecks(camera)
             for _ in range(args.count):  # a pair kept whole or not at all (pairs_folder's docstring)
                 pair = camera.grab_pair()
                 frozen = checks.frozen_camera(pair)
@@ -248,6 +251,7 @@ def run(args: argparse.Namespace) -> int:
                     # Which JPEG quality the frames were sent at: a folder did not say, and a board keeps a digit set
                     # by an earlier run. None: --quality not given (the protocol has no command that reads it back).
                     record.update(quality=args.quality, emulator=emulator_record(args), frozen_camera=frozen,
+                                  cameras_swapped=checks.swapped,
                                   rig_calibration=None if calibration is None else CALIBRATION_NAME)
                     index.append(record)
                     done += 1
@@ -269,80 +273,15 @@ def run(args: argparse.Namespace) -> int:
     return _ended(0, checks, done)
 
 
-def _ended(code: int, checks: _PairChecks | None, done: int, replay: str | None = None) -> int:
+def _ended(code: int, checks: PairChecks | None, done: int, replay: str | None = None) -> int:
     """Print the command that ranges the ``done`` pairs kept (``replay``, of a capture that ended early; None:
-    said already) and their warnings (:meth:`_PairChecks.warnings`; None: no pair was grabbed); returns ``code``."""
+    said already) and their warnings (:meth:`~svs_torch.cli.capture_checks.PairChecks.warnings`; None: no pair was
+    grabbed); returns ``code``."""
     if replay is not None and done:
         print(f"{PROG}: range the pairs kept with: {replay}", file=sys.stderr)
     for warning in checks.warnings(done) if checks is not None else ():
         print(f"{PROG}: warning: {warning}", file=sys.stderr)
     return code
-
-
-class _PairChecks:
-    """What capture counts of the pairs it keeps, as guide refuses them: pairs whose two frames came more than
-    ``max_frame_gap_s`` apart after their regrabs (a right board 0.5 s late on every frame was saved pair after pair
-    without a word), and pairs in which one camera sent its last frame again while the other's changed
-    (:class:`~svs_torch.capture.frozen.FrozenCameraWatch`: a stalled board's pairs were saved without a word, an old
-    view beside a new one in a data set), and pairs whose two frames are one image (guide's identical_views, warned
-    of only). All are kept: capture records what the boards sent, and the index says which of the first two they
-    are."""
-
-    def __init__(self, max_frame_gap_s: float | None) -> None:
-        from ..capture.frozen import FrozenCameraWatch
-
-        self.max_frame_gap_s, self.watch = max_frame_gap_s, FrozenCameraWatch()
-        self.apart, self.frozen, self.one_image = 0, {"left": 0, "right": 0, "both": 0}, 0
-
-    def frozen_camera(self, pair) -> str | None:
-        """The camera of ``pair`` (a :class:`~svs_torch.capture.stereo.StereoPair`) judged frozen, or None; each
-        pair in the order grabbed (compared with the one before it)."""
-        left, right = self._frames(pair)
-        # With the time, as guide judges it: both boards stalled (both frames the same again for BOTH_FROZEN_S) were
-        # not judged, and their one old pair was saved again and again, neither marked nor warned of (an audit)
-        return self.watch.update(SimpleNamespace(left=left, right=right), pair.left.arrival_monotonic_s)
-
-    @staticmethod
-    def _frames(pair) -> tuple:
-        """The decoded grayscale frames of ``pair`` as tensors, guide's, without a copy."""
-        import torch
-
-        return torch.from_numpy(pair.left.image), torch.from_numpy(pair.right.image)
-
-    def count(self, pair, frozen: str | None) -> None:
-        """Count a kept ``pair``, ``frozen`` its :meth:`frozen_camera`."""
-        from ..capture.frozen import one_image_twice
-
-        gap_s = self.max_frame_gap_s
-        self.apart += gap_s is not None and abs(pair.time_between_frames_s) > gap_s
-        if frozen is not None:
-            self.frozen[frozen] += 1
-        # One image for both cameras (guide's identical_views): such pairs were saved without a word, though guide
-        # refuses them (an audit).
-        self.one_image += one_image_twice(*self._frames(pair))
-
-    def warnings(self, done: int) -> list[str]:
-        """The warnings of a capture that kept ``done`` pairs: one line each, none when all pairs were sound."""
-        said = []
-        if self.apart:
-            said.append(f"{self.apart} of {done} pairs' frames came over {self.max_frame_gap_s:g} s apart after "
-                        "their regrabs (time_between_frames_s in index.jsonl): not one stereo moment; guide does not "
-                        "range such pairs")
-        if self.frozen["both"]:
-            said.append(f"{self.frozen['both']} of {done} pairs have both cameras' frames sent again, pixel for pixel, "
-                        "for 3 s or more (frozen_camera \"both\" in index.jsonl): both boards stalled, one old pair "
-                        "again and again; check the cameras; guide does not range such pairs")
-        for camera, count in self.frozen.items():
-            if count and camera != "both":
-                other = "right" if camera == "left" else "left"
-                said.append(f"{count} of {done} pairs have the {camera} camera's frame sent again, pixel for pixel, "
-                            f"while the {other} one's changed (frozen_camera in index.jsonl): a stalled board, an old "
-                            f"view beside a new one; check the {camera} camera; guide does not range such pairs")
-        if self.one_image:
-            said.append(f"{self.one_image} of {done} pairs have one image for both cameras, pixel for pixel: one "
-                        "board's frame sent for both (check --left and --right reach two boards); guide does not "
-                        "range such pairs")
-        return said
 
 
 def open_stereo_camera(args: argparse.Namespace, size: tuple[int, int], stack: contextlib.ExitStack,

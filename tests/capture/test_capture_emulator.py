@@ -443,6 +443,28 @@ def test_swapped_serial_devices_are_not_told_of_a_wifi_port():
     assert "10001" not in str(caught.value)
 
 
+def test_cli_capture_marks_and_warns_of_boards_answering_in_each_others_roles(emulator, tmp_path, capsys):
+    """Found by an audit of a rig set up against the emulator with its ports given the other way round: capture
+    warned once as it started and saved every pair unmarked, each left image the right camera's view, and estimate of
+    the index asked "are LEFT and RIGHT swapped?" with nothing in it to say so. Each index line now says
+    ``cameras_swapped`` (false for boards in their roles) and the end warns of it with what to do."""
+    from svs_torch.cli import main
+
+    urls = emulator.urls
+    assert main(["capture", "--left", urls["right"], "--right", urls["left"], "--count", "2", "--size", "160x120",
+                 "--out", str(tmp_path / "swapped")]) == 0
+    err = " ".join(capsys.readouterr().err.split())
+    assert "expected the left board" in err  # as it starts (the driver's), and at its end:
+    assert "warning: the left board answered as the stereo slave and the right as the master (cameras_swapped in " \
+           "index.jsonl, on each of the 2 pairs kept)" in err and "--left and --right URLs the other way round" in err
+    assert main(["capture", "--left", urls["left"], "--right", urls["right"], "--count", "1", "--size", "160x120",
+                 "--out", str(tmp_path / "sound")]) == 0
+    assert "cameras_swapped" not in capsys.readouterr().err
+    for folder, swapped in (("swapped", [True, True]), ("sound", [False])):
+        lines = (tmp_path / folder / "index.jsonl").read_text().splitlines()
+        assert [json.loads(line)["cameras_swapped"] for line in lines] == swapped
+
+
 def test_unreachable_url_names_camera():
     with socket.socket() as probe:  # a free port that nobody listens on
         probe.bind(("127.0.0.1", 0))
