@@ -71,9 +71,13 @@ def add_parser(subparsers: Any) -> None:
     """Register the ``capture`` subcommand on an argparse subparsers object (sets ``func=run``)."""
     parser = subparsers.add_parser(
         "capture", help="grab stereo pairs from an SVS camera into a folder",
-        description="Grab stereo pairs from a Surveyor SVS (two SRV-1 boards) and save each board's JPEG plus "
-                    "an index.jsonl of timestamps. --emulator tries it without a device. Exit status: 0 done, "
-                    "1 capture or file error, 2 bad arguments, 130 interrupted, 143 terminated (SIGTERM).",
+        description="Grab stereo pairs from a Surveyor SVS (two SRV-1 boards) and save each board's JPEG plus an\n"
+                    "index.jsonl of timestamps. --emulator tries it without a device. Every pair is kept; the index\n"
+                    "marks, and the end warns of, pairs guide would not range (a frozen camera, frames far apart)\n"
+                    "and boards answering in each other's roles, --left not the stereo master (cameras_swapped: the\n"
+                    "URLs likely the other way round; cover the left lens, and its image must be the dark one).\n"
+                    "Exit status: 0 done, 1 capture or file error, 2 bad arguments, 130 interrupted, 143 terminated\n"
+                    "(SIGTERM).",
         epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--left", metavar="URL",
                         help="left/master board: socket://HOST:10001 or a serial device such as /dev/ttyUSB0")

@@ -241,6 +241,18 @@ def test_capture_help_names_every_file_that_refuses_its_folder(capsys):
     assert "it must not hold another run's index.jsonl, calibration.json or pair images" in said
 
 
+def test_capture_help_says_what_its_index_marks_and_how_to_check_which_board_is_left(capsys):
+    """Found by an audit of a rig set up with capture: its --help said only "an index.jsonl of timestamps", nothing
+    of the pairs it marks and warns of, nor of boards answering in each other's roles (the URLs the other way round,
+    which it now marks as cameras_swapped) or of the covered lens that tells which camera is which (hw/README)."""
+    with pytest.raises(SystemExit):
+        main(["capture", "--help"])
+    said = " ".join(capsys.readouterr().out.split())
+    for words in ("the index marks, and the end warns of, pairs guide would not range", "--left not the stereo "
+                  "master (cameras_swapped", "cover the left lens, and its image must be the dark one"):
+        assert words in said
+
+
 def test_a_recording_whose_kept_calibration_is_gone_is_refused_not_ranged_in_the_svs_model(capsys, data_dir,
                                                                                              tmp_path):
     """Found by an audit of recordings: a capture --calibration folder copied without its calibration.json (the
