@@ -30,7 +30,8 @@ from ..core.checks import InputError
 from .calibration import StereoCalibration, _check_maps_in_view, check_baseline
 
 __all__ = ["BoardViews", "GOOD_FOCAL_SD_PCT", "GOOD_STEREO_RMS_PX", "MAX_FOCAL_SD_PCT", "MAX_SQUARE_M", "MIN_PAIRS",
-           "board_image_u8", "calibrate_stereo_rig", "collect_board_views", "drop_misfit_pairs", "find_board_corners",
+           "board_image_u8", "calibrate_stereo_rig", "collect_board_views", "count_poses", "drop_misfit_pairs",
+           "find_board_corners",
            "fit_doubts", "good_row_error_px", "good_stereo_rms_px", "rectified_corners"]
 
 #: Fewest pairs with the board found in both views: each view gives the intrinsics 2 constraints, and OpenCV
@@ -187,13 +188,20 @@ def _check_views_differ(left: list[np.ndarray], right: list[np.ndarray], names: 
     if len(same_image) == len(names):
         raise InputError(f"{name}: the left and right views show the board at the same pixels in every pair (e.g. "
                          f"{same_image[0]}): expected two cameras' images, LEFT and RIGHT from each camera")
+    poses = count_poses(left)
+    if poses < MIN_PAIRS:
+        raise InputError(f"{name}: the board is in {poses} pose(s) over {len(names)} pairs (copies of one "
+                         f"pair?); expected at least {MIN_PAIRS}: move and tilt the board between pairs")
+
+
+def count_poses(left: list[np.ndarray]) -> int:
+    """How many poses of the board the left views' corners show: a view whose corners lie within
+    :data:`SAME_POSE_PX` of an earlier one's (median over the board) is that pose again."""
     poses: list[np.ndarray] = []
     for corners in left:
         if all(np.median(np.linalg.norm(corners - pose, axis=-1)) >= SAME_POSE_PX for pose in poses):
             poses.append(corners)
-    if len(poses) < MIN_PAIRS:
-        raise InputError(f"{name}: the board is in {len(poses)} pose(s) over {len(names)} pairs (copies of one "
-                         f"pair?); expected at least {MIN_PAIRS}: move and tilt the board between pairs")
+    return len(poses)
 
 
 def rectified_corners(calibration: StereoCalibration, views: BoardViews) -> tuple[list[np.ndarray], list[np.ndarray]]:

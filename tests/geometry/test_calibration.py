@@ -370,6 +370,30 @@ def test_calibrate_names_copies_of_one_pose_one_image_twice_and_a_square_in_mill
         assert code == 2 and "--square-m: expected the side of one square in metres, at least 0.001 (1 mm" in stderr
 
 
+def test_calibrate_counts_poses_not_pairs_when_it_warns_of_too_few(capsys, samples, tmp_path):
+    """Found by an audit of a rig set up with capture: 13 pairs captured from the emulator showing the 13 shared
+    boards were 7 poses, each board held still for two grabs, and calibrate said nothing (it warns under 10 pairs).
+    Each of 6 poses here is grabbed twice, the second time with its own sensor noise: the warning says 12 pairs but
+    6 poses; the file is the one it wrote before."""
+    rng = np.random.default_rng(0)
+    boards = tmp_path / "boards"
+    boards.mkdir()
+    for number in range(1, 7):
+        for view in ("left", "right"):
+            image = cv2.imread(str(samples / f"{view}0{number}.jpg"), cv2.IMREAD_GRAYSCALE)
+            for grab, noise in ((2 * number - 1, 0.0), (2 * number, 2.0)):
+                noisy = np.clip(image + rng.normal(0.0, noise, image.shape), 0, 255).astype(np.uint8)
+                cv2.imwrite(str(boards / f"{view}{grab:02d}.png"), noisy)
+    code, stdout, stderr = run_cli(capsys, "calibrate", str(boards / "left*.png"), "--square-m", "0.025", "--out",
+                                   str(tmp_path / "rig.json"), "--json")
+    report = json.loads(stdout)
+    assert code == 0 and len(report["pairs"]) == 12
+    assert report["warnings"] == ["calibrated from 12 pairs but 6 poses of the board (the others show it where "
+                                  "another pair does, within 1 px: held still between grabs): 10-20 poses of the "
+                                  "board across the field give a steadier focal length and baseline"]
+    assert report["warnings"][0] in " ".join(stderr.split())
+
+
 def test_calibrate_leaves_out_a_pair_whose_views_do_not_fit_and_warns_of_a_poor_fit(capsys, samples, tmp_path):
     """Found by an audit: six good pairs and a seventh holding the same right image twice wrote a stereo RMS of
     13.6 px, a row error of 9 px and a 0.19 m baseline (0.083 m), exit 0 and no word; guide then said "Stop" at
