@@ -5,7 +5,9 @@ last frame again while the other's changed; ``"both"``: both boards theirs, for 
 over the camera's :data:`~svs_torch.capture.stereo.MAX_FRAME_GAP_S`; it warns of them at its end. ``estimate --pairs
 DIR/index.jsonl`` and ``eval`` then ranged them without a word, as if each were one stereo moment (an audit). They
 are still ranged, their numbers unchanged (the index is what the boards sent); each such pair's line says so
-(estimate's text, and ``--json`` lines), and the run's end counts them.
+(estimate's text, and ``--json`` lines), and the run's end counts them. So are pairs capture grabbed from boards
+that answered in each other's roles (``cameras_swapped``: the URLs given the other way round), which ``estimate``
+could only ask of ("are LEFT and RIGHT swapped?").
 
 Only the standard library at import: the parent of ``estimate``'s workers never imports torch.
 """
@@ -21,17 +23,20 @@ def capture_fields(source) -> dict:
     """The JSON fields of a pair whose ``index.jsonl`` line marks it (``source``: a
     :class:`~svs_torch.data.pair_list.PairSource`): ``frozen_camera`` as the index says it (null, ``"left"``,
     ``"right"``) and ``frames_apart_s``, how far apart its two frames came where that is over
-    :data:`~svs_torch.capture.stereo.MAX_FRAME_GAP_S` (null: within it); {} for a pair the index does not mark,
-    and for any other entry (a sound pair's line is as it was: guide's record lines are all sound pairs)."""
+    :data:`~svs_torch.capture.stereo.MAX_FRAME_GAP_S` (null: within it), and ``cameras_swapped`` (true) where the
+    index says so; {} for a pair the index does not mark, and for any other entry (a sound pair's line is as it
+    was: guide's record lines are all sound pairs)."""
     if source.problem is not None:  # (only an index line carries the marks: a plain list's pair has neither)
         return {}
     from ..capture.stereo import MAX_FRAME_GAP_S
 
     gap_s = source.time_between_frames_s
     apart = gap_s is not None and abs(gap_s) > MAX_FRAME_GAP_S
+    swapped = {"cameras_swapped": True} if source.cameras_swapped else {}
     if not (apart or source.frozen_camera):
-        return {}
-    return {"frozen_camera": source.frozen_camera, "frames_apart_s": round(abs(gap_s), 3) if apart else None}
+        return swapped
+    return {"frozen_camera": source.frozen_camera, "frames_apart_s": round(abs(gap_s), 3) if apart else None,
+            **swapped}
 
 
 def capture_warning(fields: dict) -> str | None:
@@ -47,7 +52,11 @@ def capture_warning(fields: dict) -> str | None:
     # (both boards stalled send one stereo moment, but an old one)
     moment = "not the moment grabbed" if len(said) == 1 and fields.get("frozen_camera") == "both" else \
         "not one stereo moment"
-    return f"warning: {'; '.join(said)}: {moment}" if said else None
+    said = [f"{'; '.join(said)}: {moment}"] if said else []
+    if fields.get("cameras_swapped"):
+        said.append("captured from boards answering in each other's roles (cameras_swapped in the index): its left "
+                    f"image is {_SWAPPED}")
+    return f"warning: {'; '.join(said)}" if said else None
 
 
 def warn_capture_marks(lines: list[dict], total: int) -> None:
@@ -65,11 +74,20 @@ def warn_capture_marks(lines: list[dict], total: int) -> None:
                           f"{_other(camera)} one's changed (frozen_camera in the index and in each --json line): "
                           "ranged, but not one stereo moment (an old view beside a new one); guide does not range "
                           "such pairs", RuntimeWarning, stacklevel=2)
+    if swapped := sum(bool(line.get("cameras_swapped")) for line in lines):
+        warnings.warn(f"{swapped} of {total} listed pairs were captured from boards answering in each other's roles "
+                      f"(cameras_swapped in the index and in each --json line): ranged, but each left image is "
+                      f"{_SWAPPED}",
+                      RuntimeWarning, stacklevel=2)
     if apart:
         warnings.warn(f"{len(apart)} of {total} listed pairs' frames came too far apart to be one stereo moment (up "
                       f"to {max(apart):.2f} s; time_between_frames_s in the index, frames_apart_s in each --json "
                       "line): ranged, but the scene and the cameras moved between them; guide does not range such "
                       "pairs", RuntimeWarning, stacklevel=2)
+
+
+#: What a pair captured from boards in each other's roles is (capture's warning says the same).
+_SWAPPED = "likely the right camera's view; capture again with --left and --right the other way round"
 
 
 def _other(camera: str) -> str:

@@ -329,7 +329,8 @@ def _run_many(args: argparse.Namespace) -> int:
                     unrectified.append(report["left"])  # a scene folder, ranged with its own calibration)
                 heading, warning = f"{report['left']} {report['right'] or ''}".rstrip(), capture_warning(report)
                 if warning:  # an index's frozen camera or frames apart: ranged, said (its marks kept, not its line)
-                    marked.append({key: report[key] for key in ("frozen_camera", "frames_apart_s")})
+                    marked.append({key: report.get(key) for key in ("frozen_camera", "frames_apart_s",
+                                                                     "cameras_swapped")})
                 text = None if args.json else "\n".join([heading, *format_report(report, batched=True),
                                                           *[f"  {warning}"] * bool(warning)])
                 progress.write(dumps_strict(report) if args.json else text)

@@ -75,9 +75,10 @@ class PairSource:
         label: the name to report the pair by where another listed pair would have its name (two folders both
             called ``Teddy``): the name with the folders that tell them apart, ``eval3/Teddy (a)``. None: its
             own name.
-        frozen_camera, time_between_frames_s: what an ``index.jsonl`` line records of the pair's frames (capture's
-            docstring): the camera whose frame came again (``"left"``/``"right"``) and how far apart, in seconds,
-            the two frames arrived; None where the line says nothing (or is no index line).
+        frozen_camera, time_between_frames_s, cameras_swapped: what an ``index.jsonl`` line records of the pair's
+            frames (capture's docstring): the camera whose frame came again (``"left"``/``"right"``), how far apart,
+            in seconds, the two frames arrived, and whether the boards answered in each other's roles (true/false);
+            None where the line says nothing (or is no index line).
     """
 
     left: str
@@ -92,6 +93,7 @@ class PairSource:
     label: str | None = None
     frozen_camera: str | None = field(default=None, compare=False)  # what capture saw of it, not what it is
     time_between_frames_s: float | None = field(default=None, compare=False)
+    cameras_swapped: bool | None = field(default=None, compare=False)
 
     @property
     def pair_id(self) -> str:
@@ -229,11 +231,14 @@ def _read_text(path: Path, name: str) -> str:
 
 def _capture_marks(record: dict) -> dict:
     """The :class:`PairSource` fields of what an index line records of its frames (None where it holds no such
-    value): ``estimate --pairs`` and ``eval`` say which listed pairs are not one stereo moment, as capture did."""
+    value): ``estimate --pairs`` and ``eval`` say which listed pairs are not one stereo moment, or came from boards
+    in each other's roles, as capture did."""
     frozen, gap_s = record.get("frozen_camera"), record.get("time_between_frames_s")
     finite = isinstance(gap_s, (int, float)) and not isinstance(gap_s, bool) and math.isfinite(gap_s)
+    swapped = record.get("cameras_swapped")
     return {"frozen_camera": frozen if frozen in ("left", "right", "both") else None,
-            "time_between_frames_s": float(gap_s) if finite else None}
+            "time_between_frames_s": float(gap_s) if finite else None,
+            "cameras_swapped": swapped if isinstance(swapped, bool) else None}
 
 
 def _index_sources(text: str, path: Path, name: str) -> list[PairSource]:

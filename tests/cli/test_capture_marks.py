@@ -60,3 +60,33 @@ def test_sweep_of_an_index_warns_of_frozen_and_torn_pairs(tmp_path, capsys):
     (tmp_path / "sweep.toml").write_text(f'paths = ["{_index(tmp_path)}"]\n[grid]\n"segmentation.kernel_size" = [5]\n')
     assert main(["sweep", str(tmp_path / "sweep.toml"), "--db", str(tmp_path / "sweep.sqlite"), "--workers", "0"]) == 0
     _said(capsys.readouterr().err)
+
+
+def test_estimate_and_eval_of_an_index_tell_the_pairs_captured_from_boards_in_each_others_roles(tmp_path, capsys):
+    """Found by an audit of a rig set up with capture given the boards' URLs the other way round: capture now marks
+    such pairs (cameras_swapped), and estimate --pairs of its index could still only ask "are LEFT and RIGHT
+    swapped?". Each such pair's line now says what capture saw, and the end counts them; a pair marked false, or not
+    marked, is as it was."""
+    index = _index(tmp_path)
+    lines = [json.loads(line) for line in (tmp_path / "index.jsonl").read_text().splitlines()]
+    for line, swapped in zip(lines, (True, True, False, None, None)):
+        if swapped is not None:
+            line["cameras_swapped"] = swapped
+    (tmp_path / "index.jsonl").write_text("".join(json.dumps(line) + "\n" for line in lines))
+    assert main(["estimate", "--pairs", index, "--json", "--workers", "1"]) == 0
+    out, err = capsys.readouterr()
+    rows = [json.loads(line) for line in out.splitlines()]
+    assert [row.get("cameras_swapped", "-") for row in rows] == [True, True, "-", "-", "-"]
+    assert rows[1]["frozen_camera"] == "left"  # beside the other marks
+    said = "2 of 5 listed pairs were captured from boards answering in each other's roles (cameras_swapped in the " \
+           "index and in each --json line): ranged, but each left image is likely the right camera's view; capture " \
+           "again with --left and --right the other way round"
+    assert said in " ".join(err.split())
+    assert main(["estimate", "--pairs", index, "--workers", "1"]) == 0
+    assert capsys.readouterr().out.count("captured from boards answering in each other's roles (cameras_swapped in "
+                                         "the index): its left image is likely the right camera's view") == 2
+    assert main(["eval", index, "--json"]) == 0
+    out, err = capsys.readouterr()
+    assert [json.loads(line).get("cameras_swapped", "-") for line in out.splitlines()[:-1]] == [True, True, "-", "-",
+                                                                                                "-"]
+    assert said in " ".join(err.split())
