@@ -18,7 +18,9 @@ Each line (on stdout with ``--json``, in the index with
 ``confirmed_side``, that median's pair's, the class ``clear`` / ``warn`` / ``stop`` and the words said, if any),
 ``dropped_pairs`` (pairs that arrived while the previous one was ranged and were never ranged), ``latency_s``
 (from the request of the left frame, when the board grabbed it, to the warning: its encoding and the link's transfer
-included). Only the pairs guide ranged are kept: the record is what the walker was told about.
+included) and ``cameras_swapped`` (capture's mark of boards answering in each other's roles, which ``estimate``
+of the record says on each such pair). Only the pairs guide ranged are kept: the record is what the walker was told
+about.
 """
 
 from __future__ import annotations
@@ -64,6 +66,8 @@ class GuideLog:
         self._index: PairsIndex | None = None
         self._made = False  # the record's folder was made by open()
         self.num_recorded = 0
+        # capture's cameras_swapped of the boards ranged now (guide_loop's role check; None: a build naming no role)
+        self.cameras_swapped: bool | None = None
         self.record_error: str | None = None  # why the recording stopped (a full disk), None: it did not
         self.json_error: str | None = None  # why the --json lines stopped (stdout's disk full), None: they did not
         # Where stdout's file ends after each of the last lines ([None]: not a regular file). A flush may say
@@ -99,7 +103,7 @@ class GuideLog:
             record.update(report, calibration_rectified=self.rig is not None,
                           calibration=self._calibration(pair.left.size_wh), image_size_px=size, working_size_px=size)
             record.update(warning=warning, dropped_pairs=num_dropped, latency_s=round(latency_s, 6),
-                          quality=self.quality, emulator=self.emulator)
+                          quality=self.quality, emulator=self.emulator, cameras_swapped=self.cameras_swapped)
             if self._index is not None:  # after both images are in place (save_pair)
                 try:
                     self._index.append(record)

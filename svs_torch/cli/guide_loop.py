@@ -31,10 +31,10 @@ from ..capture.frozen import FrozenCameraWatch, one_image_twice
 from ..capture.guide import CANNOT_SEE, CLEAR, UNSEEN, SightWatch
 from ..capture.link_types import CaptureError
 from ..capture.pattern_notice import PatternNotice
-from ..capture.stereo import STEREO_ROLES
 from ..depth.depth_types import ObstacleSide
 from ..pipeline import PipelineStatus
 from .capture import open_stereo_camera
+from .capture_checks import cameras_swapped
 from .guide import GUIDE_STOPPED  # (said there, before this module's imports are done)
 from .guide_floor import DISTANCE_ALONG, FLOOR_MEMORY_S, FloorMemory
 from .guide_log import GuideLog
@@ -139,13 +139,13 @@ class GuideSession:
         """Say :data:`CAMERAS_SWAPPED` (once a run) when the left board answers as the slave or the right as the
         master; the driver's warning is printed too. Boards of a build that names no role are not said."""
         versions = getattr(camera, "versions", None)  # (a camera of another kind has no boards' version lines)
-        roles = {name: versions[name].role if versions else "unknown" for name in STEREO_ROLES}
-        if self.roles_said or not set(roles.values()) <= set(STEREO_ROLES.values()):
+        # Each recorded pair is marked as capture marks its index (--record's pairs were unmarked: an audit)
+        self.log.cameras_swapped = cameras_swapped(camera) if versions else None
+        if self.roles_said or not self.log.cameras_swapped:
             return
-        if roles != STEREO_ROLES:
-            self.roles_said = True
-            self.guide.speaker.say(CAMERAS_SWAPPED)
-            self.log.event("cameras_swapped", left_role=roles["left"], right_role=roles["right"])
+        self.roles_said = True
+        self.guide.speaker.say(CAMERAS_SWAPPED)
+        self.log.event("cameras_swapped", left_role=versions["left"].role, right_role=versions["right"].role)
 
     def _range_stream(self, camera) -> Exception | None:
         """Range the pairs ``camera`` streams until ``--count`` (None) or until it is lost (its error). Only the

@@ -857,9 +857,10 @@ def test_the_status_line_shows_stop_s_distance_as_it_is_said():
 
 
 @pytest.mark.parametrize("swapped", [True, False])
-def test_guide_says_aloud_once_that_the_boards_answer_in_the_wrong_roles(capsys, swapped):
+def test_guide_says_aloud_once_that_the_boards_answer_in_the_wrong_roles(capsys, tmp_path, swapped):
     """Left alone at the last two stops, then fixed: --left and --right swapped (the left URL reaches the slave)
-    make every distance wrong, and guide only printed the driver's warning, which a walker does not read."""
+    make every distance wrong, and guide only printed the driver's warning, which a walker does not read. Its
+    --record's pairs carry capture's mark (they were unmarked, an audit), which estimate of the record says."""
     import json
 
     from hw.emulator import EmulatorServer
@@ -869,7 +870,8 @@ def test_guide_says_aloud_once_that_the_boards_answer_in_the_wrong_roles(capsys,
 
     with EmulatorServer(left_port=0, right_port=0, source=SyntheticSource()) as server:
         left, right = (server.urls[name] for name in (("right", "left") if swapped else ("left", "right")))
-        assert main(["guide", "--left", left, "--right", right, "--count", "2", "--no-speech", "--json"]) == 0
+        argv = ["guide", "--left", left, "--right", right, "--count", "2", "--no-speech", "--json"]
+        assert main(argv + ["--record", str(tmp_path / "walk")]) == 0
     out, err = capsys.readouterr()
     events = [line for line in map(json.loads, out.splitlines()) if line.get("event") == "cameras_swapped"]
     if swapped:
@@ -877,6 +879,11 @@ def test_guide_says_aloud_once_that_the_boards_answer_in_the_wrong_roles(capsys,
         assert [(e["left_role"], e["right_role"]) for e in events] == [("slave", "master")]
     else:
         assert CAMERAS_SWAPPED not in err and "stereo master" not in err and not events
+    index = (tmp_path / "walk" / "index.jsonl").read_text().splitlines()
+    assert [json.loads(line)["cameras_swapped"] for line in index] == [swapped] * len(index) and index
+    assert main(["estimate", "--pairs", str(tmp_path / "walk" / "index.jsonl"), "--json"]) in (0, 1)
+    ranged = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    assert [line.get("cameras_swapped", False) for line in ranged if "status" in line] == [swapped] * len(index)
 
 
 @pytest.mark.parametrize("swapped", [True, False])
