@@ -82,10 +82,12 @@ JSON_HELP = ("a JSON line per pair ranged on stdout for another program: estimat
              "calibration its metres use), the capture's times, 'warning' (the pair's and the confirmed distance, the "
              "class clear / warn / stop, or unseen: nothing measured; the words said), 'dropped_pairs', 'latency_s', "
              "'quality' (--quality's digit), 'emulator' (--emulator's noise, loose rig, floor and heap; null from "
-             "boards); a line {\"event\": ...} when the camera is lost or back, guide cannot see "
-             "or sees again, a pair is not ranged (frames_apart, identical_views, camera_frozen with its 'camera'), "
-             "the boards answer in the wrong roles (cameras_swapped), or a repeated pattern not ranged is said "
-             "(repeated_pattern, with the nearest distance it may be at); the warnings' text goes to stderr")
+             "boards); a line {\"event\": ...} when the camera is lost or back (camera_lost, camera_back), guide "
+             "cannot see or sees again (cannot_see, seeing_again, with the 'status' why), a pair is not ranged "
+             "(frames_apart, identical_views, camera_frozen with its 'camera'), the boards answer in the wrong roles "
+             "(cameras_swapped) or their matches show them mounted wrong (cameras_mounted_wrong: 'views' swapped or "
+             "turned), or a repeated pattern not ranged is said (repeated_pattern, with the nearest distance it may "
+             "be at); the warnings' text goes to stderr")
 
 
 #: ``--confirm-frames``'s default: :data:`svs_torch.capture.guide.CONFIRM_FRAMES`, written out here because that

@@ -60,6 +60,34 @@ def test_capture_help_shows_commands_to_copy(capsys, monkeypatch):
         assert text in help_of_capture
 
 
+def test_guide_json_help_and_readme_name_every_event_and_status_guide_writes():
+    """A program reading ``guide --json`` learns its lines from the help and the README: the help named no
+    ``cameras_mounted_wrong``, the README no ``identical_views`` event nor its ``IDENTICAL_VIEWS`` status (a
+    newcomer's audit of the README). Every event the loop logs, and every status a pair it leaves unranged gives its
+    ``cannot_see`` line, is named in both."""
+    from conftest import REPO_ROOT
+
+    source = (REPO_ROOT / "svs_torch" / "cli" / "guide_loop.py").read_text()
+    events = set(re.findall(r"\.event\(\s*\"(\w+)\"", source)) | {"cannot_see", "seeing_again"}
+    not_ranged = re.findall(r"_not_ranged\(\s*item,\s*\"(\w+)\",[^\n]*?\",\s*\"(\w+)\"", source)
+    statuses = {status for status, _ in not_ranged} | {"WAITING_FOR_FRAMES"}
+    events |= {event for _, event in not_ranged}
+    assert {"cameras_mounted_wrong", "identical_views", "camera_frozen", "frames_apart"} <= events
+    assert {"IDENTICAL_VIEWS", "FRAMES_APART", "CAMERA_FROZEN"} <= statuses
+    import argparse
+
+    from svs_torch.cli import build_parser
+
+    guide = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction)).choices["guide"]
+    json_help = next(action.help for action in guide._actions if "--json" in action.option_strings)
+    readme = (REPO_ROOT / "README.md").read_text()
+    paragraph = readme.split("For another program (a haptic belt, a logger), `guide --json`", 1)[1].split("\n\n")[0]
+    for where, text in (("guide --help", json_help), ("README", paragraph)):
+        missing = sorted(name for name in events | (statuses if where == "README" else set())
+                         if not re.search(rf"\b{name}\b", text))
+        assert missing == [], (where, missing)
+
+
 #: Options a command's help names that belong to another command it points to: calibrate's file is given to the
 #: pipeline commands as --calibration; sweep names eval's --set, results' --summary / --figure and a Dask worker's
 #: --nthreads; results reads eval's --db files; guide does what estimate's --camera-frames does, and its record is
