@@ -97,7 +97,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--focal-px", type=focal_px_value,
                         help="focal length of listed file pairs without one, pixels (default: the SVS model)")
     parser.add_argument("--baseline-m", type=baseline_m_value, help="baseline of those pairs, metres (default: SVS)")
-    parser.add_argument("--doffs-px", type=doffs_px_value, default=0.0, help="doffs of those pairs, pixels")
+    parser.add_argument("--doffs-px", type=doffs_px_value, default=0.0,
+                        help="doffs of those pairs, pixels (default: 0)")
     add_calibration_option(parser, "listed file pairs (one with its own FOCAL_PX BASELINE_M is BAD_INPUT)",
                            kept_beside=True)
     parser.add_argument("--db", metavar="FILE.sqlite", type=output_file,

@@ -5,7 +5,8 @@ from __future__ import annotations
 import argparse
 import time
 
-from ..features.limits import DEFAULT_MAX_KEYPOINTS, MAX_KEYPOINTS
+from ..features.limits import (DEFAULT_MAX_KEYPOINTS, MATLAB_METRIC_THRESHOLD, MAX_KEYPOINTS,
+                               PIPELINE_METRIC_THRESHOLD)
 from ..geometry.match_ratios import LOWE_MAX_RATIO, MATLAB_MAX_RATIO
 from .common import (_number, add_figure_option, check_outputs_apart, dumps_strict, non_negative_float, options_named,
                      too_small_reason, unit_interval_float)
@@ -101,12 +102,13 @@ def add_feature_options(parser: argparse.ArgumentParser, command_defaults: bool 
     parser.add_argument("--max-keypoints", type=keypoint_count, metavar="K",
                         help=f"strongest keypoints kept per image (default: {keypoints_default})")
     parser.add_argument("--metric-threshold", type=non_negative_float, metavar="T",
-                        help="SURF det(H) threshold on 0-255 intensities (MATLAB MetricThreshold; paper 1000)")
+                        help=f"SURF det(H) threshold on 0-255 intensities (default: {PIPELINE_METRIC_THRESHOLD:g}; "
+                             f"--preset paper: {MATLAB_METRIC_THRESHOLD:g}, MATLAB's MetricThreshold)")
     parser.add_argument("--upsample", action=argparse.BooleanOptionalAction,
                         help="detect on the image enlarged twice, as SIFT does: more and better-placed "
                              "keypoints on small frames, about 4x slower detection" + (
                                  f" (default: on up to {COMMAND_UPSAMPLE_MAX_PIXELS // 2**20} megapixel; "
-                                 "--preset paper: off)" if command_defaults else ""))
+                                 "--preset paper: off)" if command_defaults else " (default: off)"))
     parser.add_argument("--max-ratio", type=unit_interval_float, metavar="R",
                         help=f"ratio test of the matching (default: {LOWE_MAX_RATIO}; --preset paper: "
                              f"{MATLAB_MAX_RATIO}, MATLAB's MaxRatio)")

@@ -48,7 +48,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         help="RANSAC Sampson-distance threshold, in pixels of the pair RANSAC runs on: with --size "
                              "the resampled pair's, not the input's that F and the inliers are given in (--preset "
                              "default: 1; paper: 0.1, MATLAB's DistanceThreshold 0.01 on its square)")
-    parser.add_argument("--seed", type=seed_int, default=0, help="RANSAC seed: the same seed gives the same F")
+    parser.add_argument("--seed", type=seed_int, default=0,
+                        help="RANSAC seed: the same seed gives the same F (default: 0)")
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of text")
     parser.set_defaults(func=run)
 

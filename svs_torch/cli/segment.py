@@ -77,7 +77,7 @@ def add_segmentation_options(parser: argparse.ArgumentParser) -> None:
                              "segmenter, the product's default, 'largest' with the others)")
     parser.add_argument("--min-area-fraction", type=float, metavar="SHARE",
                         help="regions smaller than this share of the image are never kept by the nearness rules "
-                             "(e.g. 0.003 = 230 px at 320x240)")
+                             "(default: 0.003, 230 px at 320x240)")
     parser.add_argument("--near-min-area-fraction", type=float, metavar="SHARE",
                         help="a region under --min-area-fraction but at least this share is still kept where it is "
                              "nearer than every larger region: a thin pole ahead (default 0.0015; 0: off)")

@@ -19,6 +19,7 @@ from ..core.types import Keypoints
 from . import kernels
 from .hessian import HessianOctave, hessian_octaves, local_maxima_scores, maxima_support
 from .limits import DEFAULT_MAX_KEYPOINTS, MAX_KEYPOINTS, MAX_OCTAVES, MAX_SCALE_LEVELS  # noqa: F401 (re-exported)
+from .limits import MATLAB_METRIC_THRESHOLD
 
 __all__ = ["SurfConfig", "detect_surf_keypoints", "metric_threshold_01"]
 
@@ -48,7 +49,7 @@ class SurfConfig:
             times faster on CPU; the first call in a fresh environment compiles for about 30 s).
     """
 
-    metric_threshold: float = 1000.0  # MATLAB detectSURFFeatures default
+    metric_threshold: float = MATLAB_METRIC_THRESHOLD  # MATLAB detectSURFFeatures default, 1000
     num_octaves: int = 3  # MATLAB default
     num_scale_levels: int = 4  # MATLAB default
     max_keypoints: int = DEFAULT_MAX_KEYPOINTS

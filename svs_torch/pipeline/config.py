@@ -12,6 +12,7 @@ from ..core.checks import InputError, check_count, check_flag, check_real, real_
 from ..depth.dense_config import DenseConfig
 from ..depth.depth_types import DepthConfig
 from ..features.detector import SurfConfig
+from ..features.limits import PIPELINE_METRIC_THRESHOLD
 from ..geometry.kernels import MAX_HYPOTHESES
 from ..geometry.lk_refinement import MatchRefinementConfig
 from ..geometry.match_ratios import LOWE_MAX_RATIO, MATLAB_MAX_RATIO
@@ -196,7 +197,7 @@ class PipelineConfig:
         min_measured_share=0.125, max_clipped_share=0.5))
     # MetricThreshold 100 rather than MATLAB's 1000, ratio 0.8 rather than 0.6, matches refined: the best measured
     # (experiments/surf_vs_sift.py and fundamental_vs_opencv.py --config; see the README's "Precise geometry").
-    surf: SurfConfig = field(default_factory=lambda: SurfConfig(metric_threshold=100.0))
+    surf: SurfConfig = field(default_factory=lambda: SurfConfig(metric_threshold=PIPELINE_METRIC_THRESHOLD))
     # real_rig.py, tuned 320x240: a turned / shifted / brighter right view segments differently and the masked images'
     # region borders lose half the matches (roll 2 deg: 164 -> 72 on Aloe); the nearness regions of the right view are
     # the left ones moved by their disparity, which such a camera moves elsewhere: whole images kept or raised every

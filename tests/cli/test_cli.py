@@ -88,6 +88,53 @@ def test_guide_json_help_and_readme_name_every_event_and_status_guide_writes():
         assert missing == [], (where, missing)
 
 
+def _commands():
+    import argparse
+
+    from svs_torch.cli import build_parser
+
+    return next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction)).choices
+
+
+def _option_help(command: str, option: str) -> str:
+    return " ".join(next(a.help for a in _commands()[command]._actions if option in a.option_strings).split())
+
+
+def test_every_option_with_a_default_value_says_it_in_its_help():
+    """``fundamental --seed`` (0) and ``eval --doffs-px`` (0) took a default their help never gave (a newcomer's
+    audit compared each help with argparse): every option whose argparse default is a value says it, "default"
+    and the value, but for a ``--preset`` whose default is the choice named 'default'."""
+    unsaid = []
+    for name, parser in _commands().items():
+        for action in parser._actions:
+            default = action.default
+            if (not action.option_strings or default is None or default is False or default == []
+                    or default in ("==SUPPRESS==", "default")):
+                continue
+            text = " ".join(action.help.split())
+            shown = f"{default:g}" if isinstance(default, float) else str(default)
+            if not re.search(rf"default[^)]*?\b{re.escape(shown)}\b", text):
+                unsaid.append(f"{name} {action.option_strings[0]} ({shown})")
+    assert unsaid == []
+
+
+def test_the_feature_and_segmentation_helps_state_the_configurations_defaults():
+    """``--metric-threshold``, ``--upsample`` and ``--min-area-fraction`` stated no default, though each command
+    runs one (100, off and 0.003; the paper's preset 1000): the help says them, from the configuration."""
+    from svs_torch.pipeline import PipelineConfig
+
+    default, paper = PipelineConfig(), PipelineConfig.paper()
+    for command in ("estimate", "features", "fundamental"):
+        assert (f"(default: {default.surf.metric_threshold:g}; --preset paper: {paper.surf.metric_threshold:g}, "
+                "MATLAB's MetricThreshold)") in _option_help(command, "--metric-threshold")
+    assert not default.surf.upsample and not paper.surf.upsample
+    for command in ("estimate", "fundamental"):
+        assert "(default: off)" in _option_help(command, "--upsample")
+    for command in ("estimate", "segment", "features", "fundamental"):
+        assert f"(default: {default.segmentation.min_area_fraction:g}" in _option_help(command,
+                                                                                      "--min-area-fraction")
+
+
 #: Options a command's help names that belong to another command it points to: calibrate's file is given to the
 #: pipeline commands as --calibration; sweep names eval's --set, results' --summary / --figure and a Dask worker's
 #: --nthreads; results reads eval's --db files; guide does what estimate's --camera-frames does, and its record is
