@@ -254,9 +254,10 @@ def warn_scenes_keep_their_own(args: argparse.Namespace, scenes: list[str]) -> N
     if path and scenes:
         import warnings
 
-        listed = ", ".join(scenes[:3]) + (f" and {len(scenes) - 3} more" if len(scenes) > 3 else "")
+        from ..evaluation.kept_rows import named  # the first three and how many more, as the sweep's notices
+
         warnings.warn(f"--calibration {path}: not applied to {len(scenes)} scene folder{'s' * (len(scenes) > 1)} "
-                      f"({listed}): a scene is not the rig's pair, and keeps its own calibration (the SVS model "
+                      f"({named(scenes)}): a scene is not the rig's pair, and keeps its own calibration (the SVS model "
                       "where it ships none); the file rectifies listed image pairs and captures", stacklevel=3)
 
 
