@@ -4,9 +4,11 @@ The emulator runs in its own process (as the device would), started as ``python 
 ports; the driver (:class:`svs_torch.capture.SVSStereoCamera`, default link settings) grabs, checks and decodes
 pairs. Reported per size: the median and spread of ``--runs`` runs of ``--pairs`` pairs each, the mean JPEG size,
 and for context the bound a real 2,304,000-baud UART would put on the rate (one frame per board per
-``jpeg_bytes / 230,400`` s, both boards in parallel). JSON on stdout.
+``jpeg_bytes / 230,400`` s, both boards in parallel). JSON on stdout, with its metadata (commit, versions,
+threads, the settings), and with ``--json FILE`` in FILE too, as the other benchmarks write theirs.
 
-Run: ``python experiments/bench_capture.py [--sizes 320x240,640x480] [--runs 5] [--pairs 50] [--frames torch]``
+Run: ``python experiments/bench_capture.py [--sizes 320x240,640x480] [--runs 5] [--pairs 50] [--frames torch]
+[--json out.json]``
 """
 
 from __future__ import annotations
@@ -30,7 +32,7 @@ from svs_torch.capture import LinkConfig, SVSStereoCamera  # noqa: E402
 
 from svs_torch.cli.common import positive_int  # noqa: E402
 from svs_torch.core.camera import SVS_RESOLUTIONS  # noqa: E402
-from run_metadata import run_metadata, run_script  # noqa: E402
+from run_metadata import command_line, output_path, run_metadata, run_script, write_text_whole  # noqa: E402
 
 #: The sizes a board sends, as ``--sizes`` takes them.
 BOARD_SIZES = tuple(f"{width}x{height}" for width, height in SVS_RESOLUTIONS.values())
@@ -83,7 +85,7 @@ def bench_size(urls: dict[str, str], size: str, runs: int, pairs: int) -> dict:
     }
 
 
-def main() -> int:
+def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--sizes", default="320x240,640x480", type=board_sizes,
                         help=f"comma-separated sizes a board sends, of {', '.join(BOARD_SIZES)} (default: %(default)s)")
@@ -94,7 +96,8 @@ def main() -> int:
                         help="emulator frames: svs_torch's synthetic renderer (keyframes prepared first) or the "
                              "fast stand-in")
     parser.add_argument("--threads", type=positive_int, default=1, help="torch threads in this process")
-    args = parser.parse_args()
+    parser.add_argument("--json", type=output_path, metavar="FILE", help="write the report as JSON to FILE too")
+    args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     sizes = args.sizes.split(",")
     proc, urls = start_emulator(args.frames, sizes)
@@ -103,11 +106,15 @@ def main() -> int:
     finally:
         proc.terminate()
         proc.wait(timeout=10)
-    print(json.dumps({"metadata": run_metadata(torch.get_num_threads(), pyserial=serial.__version__,
-                                               frames=args.frames, config=vars(args),
-                                               link="loopback TCP, emulator in its own process"),
-                      "results": results}, indent=1))
-    return 0
+    settings = {**vars(args), "json": args.json and str(args.json)}
+    report = {"metadata": run_metadata(torch.get_num_threads(), pyserial=serial.__version__, frames=args.frames,
+                                       config=settings, link="loopback TCP, emulator in its own process",
+                                       command=command_line("experiments/bench_capture.py", argv)),
+              "results": results}
+    print(json.dumps(report, indent=1))
+    if args.json:
+        write_text_whole(args.json, json.dumps(report, indent=1))
+    return report
 
 
 if __name__ == "__main__":

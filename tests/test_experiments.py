@@ -1080,6 +1080,32 @@ def test_bench_capture_stopped_by_ctrl_c_says_so_in_one_line_and_ends_its_emulat
     assert not Path(f"/proc/{emulator}").exists() or "Z" in Path(f"/proc/{emulator}/stat").read_text().split()[2]
 
 
+def test_bench_capture_writes_its_report_with_its_metadata_to_json(tmp_path, capsys):
+    """Found by an earlier stop's look at the benchmarks: bench_capture.py printed its report on stdout and wrote no
+    file, the one benchmark of experiments/ without ``--json FILE`` (bench_dense.py, bench_pipeline.py, ...). It now
+    writes the report it prints to FILE, whole, with its metadata (threads, versions, commit, the command); a folder
+    given as FILE is refused when parsed, before the emulator starts."""
+    import bench_capture
+
+    out = tmp_path / "capture.json"
+    argv = ["--sizes", "160x120", "--runs", "2", "--pairs", "2", "--frames", "simple", "--json", str(out)]
+    report = bench_capture.main(argv)
+    printed = json.loads(capsys.readouterr().out)
+    saved = json.loads(out.read_text(encoding="utf-8"))
+    assert saved == printed == json.loads(json.dumps(report))
+    metadata = saved["metadata"]
+    assert metadata["threads"] == 1 and metadata["torch"] == torch.__version__ and metadata["commit"]
+    assert {"opencv", "numpy", "python", "pyserial", "code_version"} <= set(metadata)
+    assert metadata["command"] == "python experiments/bench_capture.py " + " ".join(argv)
+    assert metadata["config"]["json"] == str(out) and metadata["frames"] == "simple"
+    [row] = saved["results"]
+    assert row["size"] == "160x120" and row["runs"] == 2 and len(row["pairs_per_s_all"]) == 2
+    assert row["pairs_per_s_median"] > 0 and row["mean_jpeg_bytes"] > 0
+    with pytest.raises(SystemExit) as stop:
+        bench_capture.main(["--sizes", "160x120", "--json", str(tmp_path)])
+    assert stop.value.code == 2 and "argument --json" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("argv, option", [
     (["--weights", "{copy}", "--methods", "default,otsu"], "--weights"),
     (["--nearness", "mine={copy}", "--methods", "default"], "--nearness mine={copy}"),
