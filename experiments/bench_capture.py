@@ -50,15 +50,21 @@ def board_sizes(text: str) -> str:
 
 
 def start_emulator(frames: str, sizes: list[str]) -> tuple[subprocess.Popen, dict[str, str]]:
-    """Start the emulator process; wait for its JSON line with the URLs (after any keyframe preparation)."""
+    """Start the emulator process; wait for its JSON line with the URLs (after any keyframe preparation). Ended
+    again if this fails or is interrupted: a Ctrl-C as its line came left it serving, unseen, for good (an orphan
+    holding this process's stderr), since only the benchmark's runs were in main's ``finally``."""
     cmd = [sys.executable, "-m", "hw.emulator", "--left-port", "0", "--right-port", "0", "--json"]
     cmd += ["--simple-frames"] if frames == "simple" else ["--prepare", ",".join(sizes)]
     proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, text=True)
-    line = proc.stdout.readline()
-    if not line:
+    try:
+        line = proc.stdout.readline()
+        if not line:
+            raise RuntimeError(f"emulator did not start: {' '.join(cmd)}")
+        return proc, json.loads(line)["urls"]
+    except BaseException:
         proc.kill()
-        raise RuntimeError(f"emulator did not start: {' '.join(cmd)}")
-    return proc, json.loads(line)["urls"]
+        proc.wait()
+        raise
 
 
 def bench_size(urls: dict[str, str], size: str, runs: int, pairs: int) -> dict:

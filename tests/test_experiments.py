@@ -1106,6 +1106,45 @@ def test_bench_capture_writes_its_report_with_its_metadata_to_json(tmp_path, cap
     assert stop.value.code == 2 and "argument --json" in capsys.readouterr().err
 
 
+def test_bench_capture_interrupted_as_its_emulator_starts_ends_the_emulator(monkeypatch):
+    """Found by the test above failing on a loaded machine (the emulator's start took the 3 s it waits): a Ctrl-C as
+    the emulator's line of URLs came, before main's ``try``, ended bench_capture.py with "interrupted", exit 130, and
+    left the emulator serving for good, an orphan holding the caller's stderr (that test's communicate() then waited
+    its 60 s out). start_emulator now ends it whenever it fails or is interrupted."""
+    import subprocess
+
+    import bench_capture
+
+    real_popen, started = subprocess.Popen, []
+
+    class LineThenCtrlC:
+        def __init__(self, stream):
+            self.stream = stream
+
+        def readline(self):
+            self.stream.readline()
+            raise KeyboardInterrupt
+
+    def popen(*args, **kwargs):
+        proc = real_popen(*args, **kwargs)
+        started.append((proc, proc.stdout))
+        proc.stdout = LineThenCtrlC(proc.stdout)
+        return proc
+
+    monkeypatch.setattr(bench_capture.subprocess, "Popen", popen)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            bench_capture.start_emulator("simple", ["160x120"])
+        [(proc, _)] = started
+        assert proc.wait(timeout=10) is not None
+    finally:
+        for proc, stream in started:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+            stream.close()
+
+
 @pytest.mark.parametrize("argv, option", [
     (["--weights", "{copy}", "--methods", "default,otsu"], "--weights"),
     (["--nearness", "mine={copy}", "--methods", "default"], "--nearness mine={copy}"),
