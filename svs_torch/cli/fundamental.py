@@ -85,14 +85,24 @@ def homography_share(inliers: list[list[float]], threshold_px: float) -> float |
     RANSAC, maps left to right within ``threshold_px``; None under 8 inliers. A pure shift of the view gave status
     OK, 478 of 478 inliers and an F whose epipolar lines stood at 68 degrees (Teddy's left view cut 12 px apart; the
     shared real pairs read 0.25-0.60) (an audit)."""
+    fit = homography_fit(inliers, threshold_px)
+    return None if fit is None else fit[0]
+
+
+def homography_fit(inliers: list[list[float]], threshold_px: float) -> tuple[float, list[float]] | None:
+    """:func:`homography_share` and each row's distance (pixels) from where that homography maps its left point in
+    the right view; None under 8 inliers or where OpenCV fits none."""
     if len(inliers) < 8:
         return None
     import cv2
     import numpy as np
 
     points = np.asarray(inliers, dtype=np.float64)
-    _, mask = cv2.findHomography(points[:, :2], points[:, 2:], cv2.RANSAC, threshold_px)
-    return None if mask is None else round(float(mask.mean()), 3)
+    homography, mask = cv2.findHomography(points[:, :2], points[:, 2:], cv2.RANSAC, threshold_px)
+    if mask is None:
+        return None
+    mapped = cv2.perspectiveTransform(points[None, :, :2], homography)[0]
+    return round(float(mask.mean()), 3), np.linalg.norm(mapped - points[:, 2:], axis=1).tolist()
 
 
 def _refuse_segmentation_options(args: argparse.Namespace) -> None:
