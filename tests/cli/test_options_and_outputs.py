@@ -23,6 +23,7 @@ from svs_torch.cli.estimate_report import IDENTICAL_VIEWS, TURNED_RIG
 from svs_torch.core.files import check_writable_folder
 from svs_torch.data import read_pair_sources
 from svs_torch.evaluation.store import ResultStore
+from svs_torch.evaluation.store_access import raise_if_disk_failed
 
 TEDDY = PAIRS[0]
 
@@ -1018,3 +1019,22 @@ def test_a_full_disk_under_the_store_names_the_option(data_dir, capsys, tmp_path
     store = tmp_path / "runs.sqlite"
     code, _, err = run_cli(capsys, "eval", str(data_dir / "middlebury_eval3_Q" / "Teddy"), "--db", str(store))
     assert code == 1 and err == f"svs-depth eval: error: --db: cannot write {store}: database or disk is full\n"
+
+
+def test_a_disk_that_fills_mid_run_names_the_option(data_dir, capsys, tmp_path, monkeypatch):
+    """An audit of bulk runs (a 320 kB tmpfs under 'eval --db' of 400 pairs): the store was made, the first batches'
+    rows stored, then "svs-depth eval: error: db: cannot write ...": the library's argument once the run was under
+    way, where the store's other errors name the option typed."""
+    import sqlite3
+
+    def full(self, config_id, run_id, rows):
+        error = sqlite3.OperationalError("database or disk is full")
+        error.sqlite_errorcode = 13
+        raise_if_disk_failed(error, self.path)
+
+    monkeypatch.setattr(ResultStore, "write_task", full)
+    store = tmp_path / "runs.sqlite"
+    code, _, err = run_cli(capsys, "eval", str(data_dir / "middlebury_eval3_Q" / "Teddy"), "--size", "160x120",
+                           "--db", str(store))
+    assert code == 1 and err.endswith(f"svs-depth eval: error: --db: cannot write {store}: database or disk is "
+                                      "full\n"), err
