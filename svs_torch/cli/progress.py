@@ -129,7 +129,12 @@ class Progress:
         file = sys.stdout if file is None else file
         with STDERR_LOCK:  # (the bar is redrawn on the progress stream)
             if self._bar is not None and stream_is_terminal(file):
-                self._bar.write(line, file=file)
+                # Wiped by hand: tqdm.write wipes only a bar on the same file or on sys.stdout / sys.stderr, and the
+                # bar draws on the program's stderr unwrapped (see __init__), so a row went onto the bar's line
+                # ('| 3/10 [00:01<00:02,  2.83pair/s]eval3/Motorcycle  OK ...', an audit of eval on a terminal).
+                self._bar.clear()
+                print(line, file=file, flush=True)
+                self._bar.refresh()
             else:
                 print(line, file=file, flush=True)
 

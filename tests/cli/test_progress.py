@@ -88,6 +88,33 @@ def test_a_warning_during_a_bar_gets_a_line_of_its_own(monkeypatch):
     assert "]svs-depth" not in drawn
 
 
+def test_rows_on_the_terminal_of_the_bar_get_lines_of_their_own(monkeypatch):
+    """Found by an audit of eval on a terminal: the program's stderr is wrapped (cli.interrupts.StderrAfterDecoders)
+    and the bar draws on the stream unwrapped, which tqdm.write did not take for sys.stderr, so it never wiped the bar
+    before a row: each row printed after a drawing began on the bar's line, '| 3/10 [00:01<00:02,  2.83pair/s]{"left":
+    ...' (and the table's rows so too). Both streams here write to one terminal, as they do on a real one."""
+    from svs_torch.cli.interrupts import StderrAfterDecoders
+
+    monkeypatch.setenv("TERM", "xterm")
+    monkeypatch.delenv("SVS_TORCH_PROGRESS", raising=False)
+    terminal = _Terminal()
+
+    class Descriptor(_Terminal):  # stdout and stderr: two files, one terminal
+        def write(self, text: str) -> int:
+            return terminal.write(text)
+
+    monkeypatch.setattr(sys, "stderr", StderrAfterDecoders(Descriptor()))
+    monkeypatch.setattr(sys, "stdout", Descriptor())
+    with Progress(3, "eval") as progress:
+        for number in range(3):
+            progress.write(f"row {number}")
+            progress.update(1)
+    drawn = terminal.getvalue()
+    assert "eval:" in drawn and "]row" not in drawn, drawn
+    shown = [line.split("\r")[-1].strip() for line in drawn.split("\n")]  # what a line shows once redrawn
+    assert shown[:3] == [f"row {n}" for n in range(3)], drawn
+
+
 def test_progress_on_a_dumb_terminal_is_plain_lines(monkeypatch):
     """Was (an audit of terminal output): in an Emacs shell buffer (TERM=dumb, a terminal to the program) the bar's
     carriage-return redraws piled up on one line, each read aloud by emacspeak. Now such a terminal gets the plain
