@@ -9,7 +9,7 @@ import sys
 
 from .common import options_named
 
-__all__ = ["COMPARED_FIELDS", "check_no_option_calibration_in_store", "kept_rows_note", "rows_stored_before",
+__all__ = ["COMPARED_FIELDS", "KeptRows", "check_no_option_calibration_in_store", "rows_stored_before",
            "say_saved", "store_beside_export"]
 
 #: The result fields whose stored value, where it differs from this run's, tells that a kept row is not what this run
@@ -51,29 +51,43 @@ def rows_stored_before(stored_in: tuple) -> dict[str, tuple]:
     return {pair_id: row for pair_id, row in values.items() if row[0] not in RETRIED_STATUSES}
 
 
-def kept_rows_note(args: argparse.Namespace, before: dict[str, tuple], evaluated: list[tuple[str, object]]
-                   ) -> tuple[dict, str | None]:
-    """Of the ``evaluated`` pairs (``(pair_id, PairEvaluation)``), those whose rows the store held before
-    (``before``: :func:`rows_stored_before`) and keeps instead of this run's, and how many of them differ from what
-    this run printed: the counts for the JSON summary (``db_rows_kept``, ``db_rows_kept_differing``; {} where none
-    was kept) and the line that says so (None where none was). Why: a second 'eval --db' after an image, a ground
-    truth or the code changed printed the new numbers and exited 0, while the store kept the first run's rows and
-    'results' showed them (an audit: 92.3 % printed, 99.7 % stored), without a word."""
-    kept = [(pair_id, evaluation) for pair_id, evaluation in evaluated if pair_id in before]
-    if not kept:
-        return {}, None
-    differing = [(evaluation, before[pair_id]) for pair_id, evaluation in kept
-                 if tuple(getattr(evaluation, name) for name in COMPARED_FIELDS) != before[pair_id]]
-    counts = {"db_rows_kept": len(kept), "db_rows_kept_differing": len(differing)}
-    said = f"svs-depth eval: {len(kept)} of {len(evaluated)} pairs had rows in {args.db} for this configuration"
-    if not differing:
-        return counts, f"{said}, the same as this run's: kept"
-    evaluation, stored = differing[0]
-    old, new = stored[COMPARED_FIELDS.index("acc_objects_pct")], evaluation.acc_objects_pct
-    return counts, (f"{said} before this run, and the store keeps those, not this run's: {len(differing)} of them "
-                    f"differ{'s' if len(differing) == 1 else ''} (first {evaluation.name}: {stored[0]}, objects "
-                    f"{_percent(old)} stored, {evaluation.status}, {_percent(new)} now); svs-depth results reads the "
-                    f"stored rows: give another --db file to store this run's")
+class KeptRows:
+    """Of the pairs an eval evaluated (:meth:`add`, each as it comes: only its compared values are kept, not the row),
+    those whose rows the ``--db`` store held before (``before``: :func:`rows_stored_before`) and keeps instead of
+    this run's, and how many of them differ from what this run printed. Why: a second 'eval --db' after an image, a
+    ground truth or the code changed printed the new numbers and exited 0, while the store kept the first run's rows
+    and 'results' showed them (an audit: 92.3 % printed, 99.7 % stored), without a word."""
+
+    def __init__(self, before: dict[str, tuple]) -> None:
+        self.before, self.evaluated, self.kept, self.differing = before, 0, 0, 0
+        self.first: tuple | None = None  # the first differing row: (name, status, objects %, the stored values)
+
+    def add(self, pair_id: str, evaluation) -> None:
+        self.evaluated += 1
+        if pair_id not in self.before:
+            return
+        self.kept += 1
+        stored = self.before[pair_id]
+        if tuple(getattr(evaluation, name) for name in COMPARED_FIELDS) != stored:
+            self.differing += 1
+            if self.first is None:
+                self.first = (evaluation.name, evaluation.status, evaluation.acc_objects_pct, stored)
+
+    def note(self, db: str) -> tuple[dict, str | None]:
+        """The counts for the JSON summary (``db_rows_kept``, ``db_rows_kept_differing``; {} where none was kept)
+        and the line that says so (None where none was), of the store ``db``."""
+        if not self.kept:
+            return {}, None
+        counts = {"db_rows_kept": self.kept, "db_rows_kept_differing": self.differing}
+        said = f"svs-depth eval: {self.kept} of {self.evaluated} pairs had rows in {db} for this configuration"
+        if not self.differing:
+            return counts, f"{said}, the same as this run's: kept"
+        name, status, new, stored = self.first
+        old = stored[COMPARED_FIELDS.index("acc_objects_pct")]
+        return counts, (f"{said} before this run, and the store keeps those, not this run's: {self.differing} of them "
+                        f"differ{'s' if self.differing == 1 else ''} (first {name}: {stored[0]}, objects "
+                        f"{_percent(old)} stored, {status}, {_percent(new)} now); svs-depth results reads the "
+                        f"stored rows: give another --db file to store this run's")
 
 
 def _percent(value) -> str:

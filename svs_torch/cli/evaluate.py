@@ -8,7 +8,7 @@ import time
 import warnings
 
 from .capture_marks import capture_fields, warn_capture_marks
-from .eval_store import (check_no_option_calibration_in_store, kept_rows_note, rows_stored_before, say_saved,
+from .eval_store import (KeptRows, check_no_option_calibration_in_store, rows_stored_before, say_saved,
                          store_beside_export)
 from .common import (Terminated, add_disparity_export_options, dumps_strict, options_named, output_file,
                      positive_int, resolve_export_options)
@@ -132,19 +132,35 @@ def _calibration_mark(e) -> str:
     return "own" if e.calibrated else "NOMINAL" if nominal else "model"
 
 
-def format_calibrations(evaluations) -> list[str]:
-    """Which calibration the metres use, one line per distinct one (with the pairs that use it)."""
-    from ..data import format_calibration
-
-    groups: dict[str, list[str]] = {}
-    for e in evaluations:
-        if e.calibration is not None:
-            groups.setdefault(format_calibration(e.calibration), []).append(e.name)
+def format_calibrations(groups: dict[str, list]) -> list[str]:
+    """Which calibration the metres use, one line per distinct one (with the pairs that use it): ``groups`` maps
+    each one's text to its first pair's name and its count of pairs (:class:`Tally`)."""
     lines = []
-    for line, names in groups.items():
-        who = names[0] if len(names) == 1 else f"{len(names)} pairs ({names[0]}, ...)"
+    for line, (first, count) in groups.items():
+        who = first if count == 1 else f"{count} pairs ({first}, ...)"
         lines.append(f"{who}: {line}")
     return lines
+
+
+class Tally:
+    """What eval's summary, its calibration lines and its note of the kept rows need of the rows, gathered as each
+    row comes (:meth:`add`): a row is dropped once printed and stored. Why: every row of a run was held to its end
+    for them (an audit of bulk runs: about 4.4 kB a pair, a store's rows held again for its note of kept rows)."""
+
+    def __init__(self, before: dict[str, tuple]) -> None:
+        from ..evaluation.running_summary import RunningSummary
+
+        self.count, self.summary, self.kept = 0, RunningSummary(), KeptRows(before)
+        self.calibrations: dict[str, list] = {}  # its text: [the first pair's name, how many pairs]
+
+    def add(self, pair_id: str, evaluation) -> None:
+        from ..data import format_calibration
+
+        self.count += 1
+        self.summary.add(evaluation)
+        self.kept.add(pair_id, evaluation)
+        if evaluation.calibration is not None:
+            self.calibrations.setdefault(format_calibration(evaluation.calibration), [evaluation.name, 0])[1] += 1
 
 
 #: The widest status (DEGENERATE_RECTIFICATION): a narrower column shifted every number after it (an audit).
@@ -283,46 +299,44 @@ def run(args: argparse.Namespace) -> int:
     # What ran, on the JSON summary: the summary line alone did not say (an audit of configuration values).
     ran = {"preset": preset, "overrides": overrides,
            "size": "native" if size_wh is None else f"{size_wh[0]}x{size_wh[1]}", "config": config_to_dict(config)}
-    before = rows_stored_before((store, run_id, sweep_config))
-    started, evaluations, pair_ids = time.perf_counter(), [], []
+    tally = Tally(rows_stored_before((store, run_id, sweep_config)))
+    started = time.perf_counter()
     try:
-        _evaluate_all(args, sources, setup, export, (store, run_id, sweep_config), evaluations, pair_ids)
+        _evaluate_all(args, sources, setup, export, (store, run_id, sweep_config), tally)
     except (KeyboardInterrupt, Terminated):
-        if evaluations:  # the pairs done are summarized, said to be a part: a long run stopped still tells its means
-            _print_summary(args, evaluations, started, ran, len(sources))
+        if tally.count:  # the pairs done are summarized, said to be a part: a long run stopped still tells its means
+            _print_summary(args, tally, started, ran, len(sources))
         raise
-    counts, note = kept_rows_note(args, before, list(zip(pair_ids, evaluations)))
-    _print_summary(args, evaluations, started, {**ran, **counts})
+    counts, note = tally.kept.note(args.db)
+    _print_summary(args, tally, started, {**ran, **counts})
     if note:  # after the summary, where a user reads last
         print(note, file=sys.stderr)
     warn_capture_marks([capture_fields(source) for source in sources], len(sources))  # (as estimate --pairs)
     return 0
 
 
-def _print_summary(args: argparse.Namespace, evaluations: list, started: float, ran: dict, listed: int | None = None
+def _print_summary(args: argparse.Namespace, tally: Tally, started: float, ran: dict, listed: int | None = None
                    ) -> None:
-    """The summary of ``evaluations`` (begun at ``started``, a perf_counter), last on stdout, in JSON with ``ran``
-    (preset, overrides, size, config). With ``listed`` (interrupted), of the pairs done, said so: ``interrupted`` and
-    ``pairs_listed`` in JSON, a first line in text (an interrupted --json run ended on a pair's row)."""
-    from ..evaluation import summarize
-
-    summary = summarize(evaluations, time.perf_counter() - started)
+    """The summary of the rows of ``tally`` (begun at ``started``, a perf_counter), last on stdout, in JSON with
+    ``ran`` (preset, overrides, size, config). With ``listed`` (interrupted), of the pairs done, said so:
+    ``interrupted`` and ``pairs_listed`` in JSON, a first line in text (an interrupted --json run ended on a pair's
+    row)."""
+    summary = tally.summary.summary(time.perf_counter() - started)
     if listed is not None:
         summary = {**summary, "interrupted": True, "pairs_listed": listed}
     if args.json:
         print(dumps_strict({**summary, **ran}), flush=True)
         return
-    lines = format_calibrations(evaluations) + format_summary(summary)
+    lines = format_calibrations(tally.calibrations) + format_summary(summary)
     if listed is not None:
-        lines.insert(0, f"interrupted: the summary of the {len(evaluations)} of {listed} pairs evaluated")
+        lines.insert(0, f"interrupted: the summary of the {tally.count} of {listed} pairs evaluated")
     print("\n".join(lines), flush=True)
 
 
-def _evaluate_all(args: argparse.Namespace, sources: list, setup, export, stored_in: tuple, evaluations: list,
-                  pair_ids: list) -> None:
-    """Evaluate ``sources`` batch by batch into ``evaluations`` (their pairs' ids into ``pair_ids``), each row
-    printed as it comes and each batch's rows committed to the ``--db`` store of ``stored_in`` (store, run id, sweep
-    configuration), which is closed after.
+def _evaluate_all(args: argparse.Namespace, sources: list, setup, export, stored_in: tuple, tally: Tally) -> None:
+    """Evaluate ``sources`` batch by batch, each row printed as it comes, counted in ``tally`` and, with each batch's
+    rows, committed to the ``--db`` store of ``stored_in`` (store, run id, sweep configuration), which is closed
+    after; then dropped.
     Interrupted (Ctrl-C, SIGTERM), it says what was saved: it said only "interrupted", and a user could not tell
     whether the store kept the rows of the pairs done (an audit of interrupts)."""
     from dataclasses import asdict
@@ -337,12 +351,11 @@ def _evaluate_all(args: argparse.Namespace, sources: list, setup, export, stored
         with Progress(len(sources), "eval") as bar:
             for source, evaluation in evaluate_pairs(sources, setup, args.batch_size, bar.update,
                                                      export.write if export is not None else None):
-                evaluations.append(evaluation)
-                pair_ids.append(source.pair_id)
+                tally.add(source.pair_id, evaluation)
                 block.append((source.pair_id, evaluation))
                 if export is not None and evaluation.status in UNRUN_STATUSES:
                     forget_unrun_map(args, source, evaluation.status, export)
-                if len(block) == args.batch_size or len(evaluations) == len(sources):
+                if len(block) == args.batch_size or tally.count == len(sources):
                     if store is not None:
                         with options_named(db="--db"):  # a disk that fills mid-run named "db:" (an audit)
                             store.write_task(sweep_config.config_id, run_id, block)
@@ -353,7 +366,7 @@ def _evaluate_all(args: argparse.Namespace, sources: list, setup, export, stored
                         if args.json else format_row(evaluation))
                 bar.write(line, file=sys.stdout)
     except (KeyboardInterrupt, Terminated):
-        say_saved(args, rows, len(evaluations), len(sources))
+        say_saved(args, rows, tally.count, len(sources))
         raise
     finally:
         if store is not None:

@@ -11,7 +11,6 @@ in another order with equal results (``tests/pipeline/test_batch_independence.py
 from __future__ import annotations
 
 import dataclasses
-import statistics
 import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
@@ -30,8 +29,8 @@ from ..data.pair_list import OWN_CALIBRATION_UNDER_RIG, PairSource
 from ..geometry.calibration import StereoCalibration, rectify_with_calibration
 from ..pipeline import PipelineConfig, PipelineResult, estimate_obstacle_depth
 from ..pipeline import run as run_module
-from .metrics import UNRUN_STATUSES, PairEvaluation, evaluate_result, with_nominal_calibration
-from .stereo_metrics import STEREO_FIELDS, STEREO_SCOPES
+from .metrics import PairEvaluation, evaluate_result, with_nominal_calibration
+from .running_summary import UNSCORED_NAMES, RunningSummary
 
 __all__ = ["EvalSetup", "LoadedPair", "evaluate_block", "evaluate_pairs", "load_block", "run_loaded",
            "summarize", "MIN_SIDE_PX"]
@@ -279,15 +278,6 @@ def evaluate_pairs(sources: Sequence[PairSource], setup: EvalSetup, batch_size: 
             on_block(len(block))
 
 
-def _mean(values: list[float]) -> float | None:
-    return statistics.fmean(values) if values else None
-
-
-#: The most names a summary's ``unscored`` lists: a run over thousands of a camera's pairs (no truth) is not a list of
-#: thousands of names in every summary.
-UNSCORED_NAMES = 100
-
-
 def summarize(evaluations: Sequence[PairEvaluation], wall_s: float | None = None) -> dict:
     """One summary of an evaluation.
 
@@ -305,42 +295,7 @@ def summarize(evaluations: Sequence[PairEvaluation], wall_s: float | None = None
     scene whose truth had gone missing (a KITTI folder without ``disp_occ``, a PFM of unknown values only) read as
     one more OK row (an audit).
     """
-    failures = [e for e in evaluations if not e.ok]
-    with_truth = [e for e in evaluations if e.acc_r_min_pct is not None or (e.has_truth and not e.ok)]
-    # Scenes whose data ship no calibration are scored with a nominal one: reported apart, never in the headline.
-    scored = [e for e in with_truth if e.calibrated is not False]
-    nominal = [e for e in with_truth if e.calibrated is False]
-    unscored = sorted(e.name for e in evaluations if e.ok and e.acc_r_min_pct is None)
-
-    def acc(key: str, group: Sequence[PairEvaluation] = scored) -> float | None:
-        return _mean([getattr(e, key) or 0.0 for e in group])
-
-    def mean_of(key: str) -> float | None:
-        return _mean([getattr(e, key) for e in evaluations if getattr(e, key) is not None])
-
-    ran = [e for e in evaluations if e.status not in UNRUN_STATUSES]
-    pipeline_s = sum(e.time_s for e in ran)
-    seconds = wall_s if wall_s is not None else pipeline_s
-    return {
-        "pairs": len(evaluations), "failed": len(failures), "scored": len(scored),
-        "acc_r_min_pct": acc("acc_r_min_pct"), "acc_r_max_pct": acc("acc_r_max_pct"),
-        "acc_objects_pct": acc("acc_objects_pct"),
-        "nominal_calibration": {"scored": len(nominal), "names": sorted(e.name for e in nominal),
-                                **{key: acc(key, nominal) for key in ("acc_r_min_pct", "acc_r_max_pct",
-                                                                      "acc_objects_pct")}},
-        "unscored": {"count": len(unscored), "names": unscored[:UNSCORED_NAMES]},
-        "dense_error_median_px": mean_of("dense_error_median_px"), "dense_within_1px": mean_of("dense_within_1px"),
-        "dense_within_3px": mean_of("dense_within_3px"), "sparse_error_median_px": mean_of("sparse_error_median_px"),
-        "sparse_within_1px": mean_of("sparse_within_1px"), "sparse_within_3px": mean_of("sparse_within_3px"),
-        "inlier_precision": mean_of("inlier_precision"),
-        "pipeline_s_per_pair": pipeline_s / len(ran) if ran else None,
-        "pairs_per_s": len(evaluations) / seconds if evaluations and seconds > 0 else None,
-        "statuses": {status: sum(e.status == status for e in evaluations)
-                     for status in sorted({e.status for e in evaluations})},
-        # Sorted by name: a summary does not depend on the order of the list either.
-        "failures": [{"name": e.name, "status": e.status, "reason": e.reason}
-                     for e in sorted(failures, key=lambda e: e.name)],
-        **{key: mean_of(key) for key in STEREO_FIELDS},
-        **{f"{scope}_pairs": sum(getattr(e, f"{scope}_density") is not None for e in evaluations)
-           for scope in STEREO_SCOPES},
-    }
+    summary = RunningSummary()
+    for evaluation in evaluations:
+        summary.add(evaluation)
+    return summary.summary(wall_s)

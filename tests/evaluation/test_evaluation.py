@@ -910,3 +910,53 @@ def test_a_bad_argument_of_the_evaluation_api_is_refused_by_name_before_any_pair
     with pytest.raises(InputError) as error:
         call(sources)
     assert str(error.value).startswith(message)
+
+
+def test_the_summary_gathered_pair_by_pair_is_the_lists_to_the_bit():
+    """An audit of bulk runs: eval held every row to its end for its summary; it now gathers the summary pair by pair
+    (RunningSummary) and lets the rows go. Its means are still statistics.fmean of the list's values, to the bit, where
+    a running float sum is not (1e16, 1.0 and -1e16 among them), its lists the list's, and its summary of the pairs
+    so far (an interrupted run's) that of those pairs."""
+    import random
+    import statistics
+
+    from svs_torch.evaluation import PairEvaluation
+    from svs_torch.evaluation.running_summary import MEANS, RunningSummary
+
+    rng = random.Random(5)
+    awkward = (1e16, 1.0, -1e16, 0.1, 0.2, 0.3, 99.97, 1e-9, 3.3333333333333335)
+
+    def value():
+        return rng.choice(awkward) if rng.random() < 0.5 else (None if rng.random() < 0.2 else rng.uniform(0, 100))
+
+    rows = []
+    for _ in range(300):
+        status = rng.choice(["OK"] * 6 + ["NO_OBJECTS", "BAD_INPUT"])
+        rows.append(PairEvaluation(
+            f"p{rng.randrange(1000):03d}", status, reason=None if status == "OK" else "why",
+            calibrated=rng.choice([True, False, None]), has_truth=rng.random() < 0.8,
+            acc_r_min_pct=value() if status == "OK" else None, acc_r_max_pct=value(), acc_objects_pct=value(),
+            **{key: value() for key in MEANS}, time_s=rng.random()))
+
+    def mean(values):
+        return statistics.fmean(values) if values else None
+
+    summary, running = summarize(rows, wall_s=2.0), RunningSummary()
+    with_truth = [e for e in rows if e.acc_r_min_pct is not None or (e.has_truth and not e.ok)]
+    for key in ("acc_r_min_pct", "acc_r_max_pct", "acc_objects_pct"):
+        assert summary[key] == mean([getattr(e, key) or 0.0 for e in with_truth if e.calibrated is not False])
+        assert summary["nominal_calibration"][key] == mean([getattr(e, key) or 0.0 for e in with_truth
+                                                            if e.calibrated is False])
+    naive = 0
+    for key in MEANS:
+        values = [getattr(e, key) for e in rows if getattr(e, key) is not None]
+        assert summary[key] == mean(values), key
+        naive += sum(values) / len(values) != summary[key]
+    assert naive  # (the check has teeth: a plain running sum gives other means)
+    assert summary["unscored"]["names"] == sorted(e.name for e in rows if e.ok and e.acc_r_min_pct is None)[:100]
+    assert summary["nominal_calibration"]["names"] == sorted(e.name for e in with_truth if e.calibrated is False)
+    assert [f["name"] for f in summary["failures"]] == sorted(e.name for e in rows if not e.ok)
+    for number, row in enumerate(rows, start=1):
+        running.add(row)
+        if number in (1, 7, 150, 300):
+            assert running.summary(2.0) == summarize(rows[:number], wall_s=2.0)
