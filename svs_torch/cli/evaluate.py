@@ -261,6 +261,10 @@ def disparity_export(args: argparse.Namespace, config, sources=()):
     return export
 
 
+#: The most repeated pairs the line that says so names: a list of 400 scenes given twice was a 7 kB line of names.
+REPEATS_NAMED = 5
+
+
 def run(args: argparse.Namespace) -> int:
     from ..core.workers import imports_without_collection
 
@@ -285,8 +289,11 @@ def run(args: argparse.Namespace) -> int:
     calibrated = with_calibrated_rectification(config, args)  # a --set rectify=... still wins
     config = replace(calibrated, rectify=config.rectify) if "rectify" in overrides else calibrated
     if repeated:  # once each, as a sweep and a results store count them: a repeat would weigh twice in the means
-        names = ", ".join(dict.fromkeys(source.name for source in repeated))
-        print(f"eval: listed more than once, evaluated once: {names}", file=sys.stderr)
+        names = list(dict.fromkeys(source.name for source in repeated))  # the first few (a list given twice: 400)
+        shown = ", ".join(names[:REPEATS_NAMED]) + (f" and {len(names) - REPEATS_NAMED} more" if len(names) >
+                                                    REPEATS_NAMED else "")
+        print(f"eval: {len(names)} pair{'s' * (len(names) != 1)} listed more than once, evaluated once: {shown}",
+              file=sys.stderr)
     check_no_option_calibration_in_store(args, sources)
     export = disparity_export(args, config, sources)  # its folder made once the arguments are known to be good
     store, run_id, sweep_config = store_beside_export(export, args, preset, overrides, size_wh, sources)

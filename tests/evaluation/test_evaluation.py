@@ -450,6 +450,18 @@ def test_eval_runs_a_pair_listed_twice_once(data_dir, capsys):
     assert "listed more than once, evaluated once: middlebury_eval3_Q/Teddy" in err
 
 
+def test_eval_names_the_first_few_pairs_listed_twice(data_dir, tmp_path, capsys):
+    """An audit of bulk runs: a list of 400 scenes given twice to eval said so in one 7 kB line naming all 400 (and
+    not how many). It now counts them and names the first five, as the summary's pairs without truth."""
+    scenes = [str(path) for path in sorted((data_dir / "middlebury_eval3_Q").iterdir())[:7]]
+    listing = tmp_path / "pairs.txt"
+    listing.write_text("\n".join(scenes * 2) + "\n")
+    assert main(["eval", str(listing), "--size", "64x48", "--json"]) == 0
+    err = capsys.readouterr().err
+    names = ", ".join(f"middlebury_eval3_Q/{Path(scene).name}" for scene in scenes[:5])
+    assert f"eval: 7 pairs listed more than once, evaluated once: {names} and 2 more\n" in err, err
+
+
 def test_eval_runs_a_scene_reached_through_a_link_once(data_dir, tmp_path, capsys):
     """Was: a symbolic link to a scene listed beside the scene's own folder was evaluated twice, counted twice in
     every mean (its paths differ; its files are the same)."""
