@@ -1,5 +1,6 @@
 """Reading a results store back: per-configuration summaries, the best configuration by each metric, CSV rows,
-and a figure (each metric against each swept parameter, and per-scene bars of the best configuration).
+and a figure (each metric against each swept parameter, and per-scene bars of the best configuration, or its
+accuracies sorted over the pairs where a store holds more than :data:`~.pair_spread.MAX_SCENE_BARS`).
 
 Summaries use :func:`~svs_torch.evaluation.runner.summarize`, the same rules as ``svs-depth eval``: a failed
 pair with ground truth counts 0 %, failures are counted.
@@ -17,6 +18,7 @@ from typing import Any
 from ..core.checks import InputError, check_instance
 from ..core.files import atomic_output, check_output_file, tidy_path
 from .metrics import UNRUN_STATUSES, PairEvaluation
+from .pair_spread import MAX_SCENE_BARS, sorted_accuracies
 from .runner import summarize
 from .store import RESULT_COLUMNS, ResultStore
 
@@ -247,14 +249,10 @@ def _scene_bars(axis, store: ResultStore, summary: dict, tied: int = 0) -> None:
     # read as a measured 0 and set the axis to 0-100, an audit); a failed pair with it counts 0 %, and says why.
     scored = [r["acc_r_min_pct"] is not None or (bool(r["has_truth"]) and r["status"] != "OK") for r in rows]
     names = [_scene_name(r, counted) for r, counted in zip(rows, scored)]
-    width = 0.27
-    everything = []
-    for offset, (key, label) in enumerate((("acc_r_min_pct", "R_min"), ("acc_r_max_pct", "R_max"),
-                                           ("acc_objects_pct", "objects"))):
-        values = [(r[key] or 0.0) if counted else float("nan") for r, counted in zip(rows, scored)]
-        everything += [v for v in values if v == v] or [0.0]
-        axis.bar([i + (offset - 1) * width for i in range(len(rows))], values, width, label=label)
-    axis.set_xticks(range(len(rows)), names, rotation=60, ha="right", fontsize=7)
+    if len(rows) > MAX_SCENE_BARS:  # a bar group a pair: 77 605 px wide at 3 200 pairs (pair_spread)
+        everything = sorted_accuracies(axis, rows, scored, names) or [0.0]
+    else:
+        everything = _bars(axis, rows, scored, names)
     # Zoomed to the data: on a 0-100 scale, 96 % and 99 % look the same. The label says the axis is cut.
     low, high = min(everything), max(everything)
     margin = max(0.5, 0.15 * (high - low))
@@ -268,10 +266,23 @@ def _scene_bars(axis, store: ResultStore, summary: dict, tied: int = 0) -> None:
     # Wrapped to the panel's width (8 pt text, at most 0.6 em a character): at 90 characters a third panel cut the
     # best configuration's name at the figure's edge (an audit).
     width_in = axis.get_position().width * axis.figure.get_figwidth()
-    axis.set_title(textwrap.fill(f"per scene, {best}: {summary['label']}", max(30, int(width_in * 72 / 4.8))),
+    per = "per scene" if len(rows) <= MAX_SCENE_BARS else f"over {len(rows)} pairs"
+    axis.set_title(textwrap.fill(f"{per}, {best}: {summary['label']}", max(30, int(width_in * 72 / 4.8))),
                    fontsize=8, pad=20)
     # Above the bars, never over them.
     axis.legend(fontsize=7, ncol=3, loc="lower center", bbox_to_anchor=(0.5, 1.0), frameon=False)
+
+
+def _bars(axis, rows: list[dict], scored: list[bool], names: list[str]) -> list[float]:
+    """A group of three bars a pair (R_min, R_max, objects), named below; returns the values drawn."""
+    width, everything = 0.27, []
+    for offset, (key, label) in enumerate((("acc_r_min_pct", "R_min"), ("acc_r_max_pct", "R_max"),
+                                           ("acc_objects_pct", "objects"))):
+        values = [(r[key] or 0.0) if counted else float("nan") for r, counted in zip(rows, scored)]
+        everything += [v for v in values if v == v] or [0.0]
+        axis.bar([i + (offset - 1) * width for i in range(len(rows))], values, width, label=label)
+    axis.set_xticks(range(len(rows)), names, rotation=60, ha="right", fontsize=7)
+    return everything
 
 
 def _parameter_axis(axis, summaries: Sequence[dict], configs: dict[str, dict], key: str) -> None:
@@ -340,7 +351,9 @@ def results_figure(store: ResultStore):
     row, column = divmod(len(swept), columns)
     # Each scene's name wants about 0.22 in (7 pt, turned 60°): 40 scenes overlapped in one 5.2 in panel (an
     # audit's find). Where the rest of the row is too narrow, the bars take a row of their own, the figure wider.
-    scenes_in = 0.22 * sum(r["config_id"] == best["config_id"] for r in store.results()) + 1.5
+    # Past MAX_SCENE_BARS the pairs' sorted accuracies want no more than a wide panel (pair_spread).
+    scenes = sum(r["config_id"] == best["config_id"] for r in store.results())
+    scenes_in = 0.22 * scenes + 1.5 if scenes <= MAX_SCENE_BARS else 8.0
     if column and 5.2 * (columns - column) < scenes_in:
         row, column = row + 1, 0
     figure = Figure(figsize=(max(5.2 * columns, scenes_in), 4.4 * (row + 1)))

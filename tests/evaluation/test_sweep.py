@@ -1247,6 +1247,36 @@ def test_the_scene_bars_follow_the_summarys_rules_for_pairs_without_truth_and_fa
     assert sorted(bar.get_height() for bars in axis.containers for bar in bars)[:3] == [0.0] * 3
 
 
+def test_a_store_of_many_pairs_shows_their_accuracies_sorted_not_a_bar_group_each(reference, tmp_path):
+    """Found by an audit of bulk evaluation: results --figure drew a group of three bars a pair, 9 845 px wide for 400
+    pairs and 77 605 px for 3 200. Past MAX_SCENE_BARS pairs the panel sorts each accuracy over the pairs, names the
+    lowest, and the figure is no wider for them."""
+    from svs_torch.evaluation.pair_spread import MAX_SCENE_BARS
+    from svs_torch.evaluation.report import results_figure
+    from svs_torch.evaluation.store import ResultStore
+
+    db = tmp_path / "many.sqlite"
+    with edited_copy(reference, db) as connection:
+        columns = [row[1] for row in connection.execute("PRAGMA table_info(results)")]
+        pair_columns = [row[1] for row in connection.execute("PRAGMA table_info(pairs)")]
+        for copy in range(1, 40):  # each pair 40 times over: 4 scenes' rows become 160 a configuration
+            copied = ", ".join(f"{c} || {copy}" if c in ("pair_id", "name") else c for c in pair_columns)
+            connection.execute(f"INSERT INTO pairs SELECT {copied} FROM pairs WHERE pair_id NOT GLOB '*[0-9]'")
+            values = ", ".join(f"{c} || {copy}" if c == "pair_id" else
+                               f"acc_objects_pct - {copy} * 0.1" if c == "acc_objects_pct" else c for c in columns)
+            connection.execute(f"INSERT INTO results SELECT {values} FROM results WHERE pair_id NOT GLOB '*[0-9]'")
+    with ResultStore(db) as store:
+        per_config = max(sum(r["config_id"] == c["config_id"] for r in store.results()) for c in store.configs())
+        figure = results_figure(store)
+    assert per_config > MAX_SCENE_BARS
+    axis = figure.axes[-1]
+    assert not axis.containers and len(axis.lines) == 3 and axis.get_title().startswith(f"over {per_config} pairs")
+    assert [len(line.get_xdata()) for line in axis.lines] == [per_config] * 3
+    objects = axis.lines[2].get_ydata()
+    assert list(objects) == sorted(objects) and "lowest by objects: " in axis.texts[0].get_text()
+    assert figure.get_figwidth() <= 10.4  # two columns of 5.2 in: the swept parameter beside the pairs
+
+
 def test_a_pool_left_by_ctrl_c_waits_for_nothing_and_leaves_no_process():
     """Found by an audit of sweeps: a first Ctrl-C or SIGTERM, often one that came while the pool was starting, left
     `sweep` hung until a second one (10 of 14 signals), in the orderly shutdown's waits for the workers and the
