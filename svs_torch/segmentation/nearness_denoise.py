@@ -60,7 +60,7 @@ from typing import TYPE_CHECKING
 import torch
 import torch.nn.functional as F
 
-from ..core.checks import InputError
+from ..core.checks import InputError, check_count, check_device, check_dtype, check_instance, check_shape
 from ..depth.block_matching import (block_match_sad, block_match_sad_with_residual, fill_invalid_rows,
                                     valid_row_neighbours)
 from ..depth.dense_config import DenseConfig, DenseDisparity
@@ -77,6 +77,9 @@ __all__ = ["check_denoise_settings", "denoised_map", "fillable_runs", "match_by_
 def reduced_to_width(image: torch.Tensor, width: int) -> torch.Tensor:
     """``image`` ``(B, 1, H, W)`` area-averaged to ``width`` columns (the height in proportion) when wider: the
     nearness map is matched at a working width (``NearnessNetConfig.working_width_px``)."""
+    check_shape(image, "image", ["B", 1, "H", "W"])
+    check_dtype(image, "image", "float")  # (0 or 2.5 columns failed deep in torch, or made an empty map: an audit)
+    check_count(width, "width", least=1)
     h, w = image.shape[-2:]
     if w <= width:
         return image
@@ -98,6 +101,23 @@ def check_denoise_settings(config: NearnessNetConfig) -> None:
         raise InputError(f"sparse_share: expected a share in [0, 1], got {config.sparse_share!r}")
 
 
+def _check_arguments(left: torch.Tensor, dense: DenseConfig, config: NearnessNetConfig,
+                     **flags: torch.Tensor | None) -> None:
+    """The settings, and each of ``flags`` (None or ``(B,)`` bool on the device of ``left`` ``(B, 1, h, w)``), named:
+    flags of another length were taken in silence (``(1,)`` for two pairs flagged both, or cut the map to one pair)
+    or failed deep in torch, int ones were inverted bit by bit, another config failed on its first field (an audit
+    of the functions called by hand)."""
+    from .nearness import NearnessNetConfig  # (nearness imports this module)
+    b = check_shape(left, "left", ["B", 1, "h", "w"])["B"]
+    check_instance(dense, "dense", DenseConfig)
+    check_instance(config, "config", NearnessNetConfig)
+    for name, value in flags.items():
+        if value is not None:
+            check_shape(value, name, [b])
+            check_dtype(value, name, "bool")
+            check_device(value, name, left, "the views'")
+
+
 def match_by_noise(left: torch.Tensor, right: torch.Tensor, num_disparities: int, dense: DenseConfig,
                    config: NearnessNetConfig) -> tuple[DenseDisparity, torch.Tensor]:
     """The block matcher's map of the working-width views ``left`` / ``right`` ``(B, 1, h, w)`` over
@@ -110,6 +130,7 @@ def match_by_noise(left: torch.Tensor, right: torch.Tensor, num_disparities: int
     ``config.noisy_min_residual_levels == 0`` widens every pair (any residual reaches 0), so their map is matched
     with the wider window at once: the first pass, which only its residual would have served, is skipped (about a
     ninth of a 320×240 camera frame's time at B = 1; ``SegmentationConfig.camera_frames``)."""
+    _check_arguments(left, dense, config)
     if config.noisy_min_residual_levels == 0 and config.noisy_window_size != dense.window_size:
         found = _edge_rows_from_interior(block_match_sad(
             left, right, 0, num_disparities, dataclasses.replace(dense, window_size=config.noisy_window_size)),
@@ -149,6 +170,7 @@ def soft_match_by_noise(left: torch.Tensor, right: torch.Tensor, num_disparities
     ``config.disparity_temperature``) over the same windows as :func:`match_by_noise`: ``widened`` ``(B,)`` pairs'
     with ``config.noisy_window_size`` and their edge rows taken from the same rows. Each pair's volume is built
     once, at its own window. Differentiable w.r.t. both images."""
+    _check_arguments(left, dense, config, widened=widened)
     if not bool(widened.any()):
         return soft_block_match(left, right, 0, num_disparities, config.disparity_temperature, dense)
     wider = dataclasses.replace(dense, window_size=config.noisy_window_size)
@@ -174,6 +196,8 @@ def denoised_map(left: torch.Tensor, right: torch.Tensor, found: DenseDisparity,
     accepted pixels. ``noisy`` ``(B,)`` bool: the pairs :func:`match_by_noise` matched with the wider window, whose
     long runs ``config.max_fill_px`` limits (None: none). Each pair's result depends on that pair alone. Not
     differentiable (measured without gradients; the segmenter's gradient path is the soft-argmin's)."""
+    _check_arguments(left, dense, config, noisy=noisy)
+    check_instance(found, "found", DenseDisparity)
     disparity, valid = found.disparity_px, found.valid
     sparse = valid.flatten(1).to(torch.float32).mean(1) < config.sparse_share
     if config.sparse_reduction > 1 and bool(sparse.any()):

@@ -288,6 +288,44 @@ def test_clear_errors(tmp_path):
         NearnessNetConfig(window_size=8)
 
 
+@pytest.mark.parametrize("flags, message", [
+    (torch.tensor([True]), r"^{name}: expected \(2\), got \(1\)$"),
+    (torch.tensor([True, False, True]), r"^{name}: expected \(2\), got \(3\)$"),
+    (torch.tensor([1, 0]), r"^{name}: expected a bool tensor, got torch.int64$"),
+    ([True, False], r"^{name}: expected a torch.Tensor of shape \(2\), got list$")], ids=["one", "three", "int", "list"])
+def test_the_denoising_steps_called_by_hand_name_their_pairs_flags(flags, message):
+    """Found by an audit of the nearness segmenter's pieces called by hand: soft_match_by_noise given ``widened`` of
+    one flag for two pairs returned a map of one pair in silence, and denoised_map (with max_fill_px) flagged both
+    pairs with it; three flags failed in index_select, int flags in a bool where, a list on ``.any``."""
+    from svs_torch.depth.dense_config import DenseConfig
+    from svs_torch.segmentation.nearness_denoise import denoised_map, match_by_noise, soft_match_by_noise
+    views = torch.rand(2, 2, 1, 20, 30, generator=torch.Generator().manual_seed(0)).unbind(1)
+    dense, config = DenseConfig(window_size=5), NearnessNetConfig(max_fill_px=2)
+    found, widened = match_by_noise(*views, 8, dense, config)
+    assert soft_match_by_noise(*views, 8, dense, config, widened).shape == (2, 1, 20, 30)
+    with pytest.raises(InputError, match=message.format(name="widened")):
+        soft_match_by_noise(*views, 8, dense, config, flags)
+    with pytest.raises(InputError, match=message.format(name="noisy")):
+        denoised_map(*views, found, 8, dense, config, flags)
+
+
+def test_the_denoising_steps_called_by_hand_name_a_wrong_setting():
+    """Found by the same audit: a DenseConfig given for the nearness settings failed on its first field
+    (AttributeError), and reduced_to_width took 0 columns (an empty map) and failed deep in torch for -5 or 2.5."""
+    from svs_torch.depth.dense_config import DenseConfig
+    from svs_torch.segmentation.nearness_denoise import match_by_noise, reduced_to_width, soft_match_by_noise
+    views = torch.rand(2, 2, 1, 20, 30, generator=torch.Generator().manual_seed(0)).unbind(1)
+    dense = DenseConfig(window_size=5)
+    with pytest.raises(InputError, match="^config: expected a NearnessNetConfig, got DenseConfig$"):
+        match_by_noise(*views, 8, dense, dense)
+    with pytest.raises(InputError, match="^dense: expected a DenseConfig, got NearnessNetConfig$"):
+        soft_match_by_noise(*views, 8, NearnessNetConfig(), NearnessNetConfig(), torch.tensor([True, False]))
+    for width in (0, -5, 2.5, "10"):
+        with pytest.raises(InputError, match=f"^width: expected an int >= 1, got {width!r}$"):
+            reduced_to_width(views[0], width)
+    assert reduced_to_width(views[0], 10).shape == (2, 1, 7, 10)
+
+
 def test_region_medians_equal_the_kept_region_lower_median():
     """The two-sort median per region equals depth.kept_region_lower_median over every label (its (B, L, P) form)."""
     from svs_torch.depth.quantiles import kept_region_lower_median
