@@ -52,7 +52,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from ..core.checks import InputError, check_image, check_instance
+from ..core.checks import InputError, check_count, check_flag, check_instance, check_stereo_views
 from ..core.pair_trees import take_pairs
 from ..core.size_groups import merge_groups
 from ..core.types import Segmentation, SegmentationStatus, StereoBatch, StereoSegmentation
@@ -150,9 +150,7 @@ class NearnessNetConfig:
 
     def __post_init__(self) -> None:
         for name in ("working_width_px", "network_width_px"):
-            value = getattr(self, name)
-            if not isinstance(value, int) or value < 16:
-                raise InputError(f"{name}: expected an int >= 16, got {value!r}")
+            check_count(getattr(self, name), name, least=16)
         for name in ("window_size", "median_window", "sparse_median_window", "noisy_window_size"):
             value = getattr(self, name)
             if not isinstance(value, int) or value < 1 or value % 2 == 0:
@@ -245,10 +243,11 @@ def measure_nearness_disparity(left: torch.Tensor, right: torch.Tensor,
     Differentiable w.r.t. both images when they require grad (straight-through: the hard value, the soft-argmin's
     gradient; the floor's pixels, a constant of the hard pass, get none); otherwise it runs without building a graph.
     """
-    b = check_image(left, "left")["B"]
-    check_image(right, "right")
-    if right.shape != left.shape:
-        raise InputError(f"right: expected the shape of left {tuple(left.shape)}, got {tuple(right.shape)}")
+    b = check_stereo_views(left, right)["B"]
+    check_instance(config, "config", NearnessNetConfig)  # another kind failed on its first field (an audit)
+    if ground is not None:
+        check_instance(ground, "ground", GroundPlaneConfig)
+    check_flag(camera_frames, "camera_frames")  # a string ("no") was taken as True
     h, w = left.shape[-2:]
     small_left, small_right = (reduced_to_width(view, config.working_width_px) for view in (left, right))
     factor = w / small_left.shape[-1]  # working pixels to input pixels
@@ -303,6 +302,7 @@ def nearness_logits(net: NearnessNet, left: torch.Tensor, right: torch.Tensor, g
     bilinearly from its width), and the measured disparity (``ground``, ``baseline_m``, ``focal_px``,
     ``camera_frames``: as :func:`measure_nearness_disparity`'s). Differentiable w.r.t. the network's parameters and
     both images (module docstring)."""
+    check_instance(net, "net", NearnessNet)  # an ObstacleNet or None failed on its config (an audit)
     measured = measure_nearness_disparity(left, right, net.config, ground, baseline_m, focal_px, camera_frames)
     rule = net.config.rule_gain * measured.relative
     training = torch.is_grad_enabled() and any(p.requires_grad for p in net.parameters())

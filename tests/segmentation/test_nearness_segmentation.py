@@ -326,6 +326,29 @@ def test_the_denoising_steps_called_by_hand_name_a_wrong_setting():
     assert reduced_to_width(views[0], 10).shape == (2, 1, 7, 10)
 
 
+def test_measuring_nearness_by_hand_names_a_wrong_setting_or_network():
+    """Found by an audit of the nearness segmenter called by hand: measure_nearness_disparity given a DenseConfig for
+    its settings or its floor's failed on their first field (AttributeError), took camera_frames="no" as True, and
+    nearness_logits given an ObstacleNet or None failed on its config."""
+    from svs_torch.depth.dense_config import DenseConfig
+    from svs_torch.segmentation.ground_plane import GroundPlaneConfig
+    from svs_torch.segmentation.network import ObstacleNet
+    left = torch.rand(2, 1, 20, 30, generator=torch.Generator().manual_seed(0))
+    right, rig = torch.roll(left, -2, -1), torch.full((2,), 0.1)
+    with pytest.raises(InputError, match="^config: expected a NearnessNetConfig, got DenseConfig$"):
+        measure_nearness_disparity(left, right, DenseConfig())
+    with pytest.raises(InputError, match="^ground: expected a GroundPlaneConfig, got DenseConfig$"):
+        measure_nearness_disparity(left, right, NearnessNetConfig(), DenseConfig(), rig)
+    with pytest.raises(InputError, match="^camera_frames: expected a bool, got 'no'$"):
+        measure_nearness_disparity(left, right, camera_frames="no")
+    with pytest.raises(InputError, match="^right: expected the left view's dtype torch.float32, got torch.float64$"):
+        measure_nearness_disparity(left, right.double())
+    for net, kind in ((ObstacleNet(), "ObstacleNet"), (None, "NoneType")):
+        with pytest.raises(InputError, match=f"^net: expected a NearnessNet, got {kind}$"):
+            nearness_logits(net, left, right)
+    assert measure_nearness_disparity(left, right, NearnessNetConfig(), GroundPlaneConfig(), rig).ground is not None
+
+
 def test_region_medians_equal_the_kept_region_lower_median():
     """The two-sort median per region equals depth.kept_region_lower_median over every label (its (B, L, P) form)."""
     from svs_torch.depth.quantiles import kept_region_lower_median
