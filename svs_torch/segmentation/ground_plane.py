@@ -41,7 +41,8 @@ from typing import NamedTuple
 
 import torch
 
-from ..core.checks import FLOAT32_MAX, check_count, check_generator, check_real, real_or_nan
+from ..core.checks import (FLOAT32_MAX, check_count, check_generator, check_instance, check_real, check_shape,
+                           real_or_nan)
 from ..core.errors import InputError
 from ..core.kernels.checks import canonical_bool
 from ..core.mask_reductions import any_along
@@ -180,7 +181,8 @@ def fit_ground_plane(disparity: torch.Tensor, measured: torch.Tensor, baseline_m
     ``focal_px`` ``(B,)``: the map's focal length in its pixels, which the pitch limit reads (None: no pitch
     limit). Not differentiable. Each pair's fit runs as one C kernel where it can
     (``kernels/ground_plane_fit.c``: 3–6 → 0.7–1.2 ms a frame at B = 1); :func:`_fit_in_torch` is its reference."""
-    b, _, h, w = disparity.shape
+    b, h, w = check_shape(disparity, "disparity", ["B", 1, "H", "W"]).values()  # (a list failed in the unpacking)
+    check_instance(config, "config", GroundPlaneConfig)  # another kind failed on its first field (an audit)
     _check_fit_arguments(disparity, measured, baseline_m)
     measured = canonical_bool(measured)  # a mask viewed from other bytes: nonzero is True, on both paths
     disparity = disparity.detach().to(torch.float32)

@@ -102,6 +102,7 @@ def obstacle_truth(batch: StereoBatch, config: SegmentationConfig = Segmentation
         raise InputError("batch: expected ground-truth disparity (disparity_px), got none")
     valid = batch.disparity_valid
     if floor is not None:
+        check_instance(floor, "floor", GroundPlaneConfig)  # a DenseConfig failed deep in the fit (an audit)
         from .nearness import NearnessNetConfig  # (nearness imports this module)
         factor = NearnessNetConfig().working_factor(batch.left.shape[-1])
         valid = valid & ~fit_ground_plane(batch.disparity_px.nan_to_num(0.0, 0.0, 0.0), valid, batch.baseline_m,

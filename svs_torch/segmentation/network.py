@@ -13,7 +13,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from ..core.checks import InputError, check_image
+from ..core.checks import InputError, check_image, check_instance, check_stereo_views
 from ..depth.soft_dense import soft_block_match
 from .ground_plane import GroundPlaneConfig
 from .threshold import gray_histogram, gray_levels, otsu_threshold_level
@@ -156,6 +156,9 @@ def stereo_features(left: torch.Tensor, right: torch.Tensor, config: ObstacleNet
     out how they move, so it is not the full derivative (gradcheck fails on it; an audit measured −1.05 against
     −2.9 by finite differences on one pair).
     """
+    # Views of two sizes were each resized to the working size in silence; another config failed on a field.
+    check_stereo_views(left, right)
+    check_instance(config, "config", ObstacleNetConfig)
     size = _working_size(left, config.working_width_px)
     small = [F.interpolate(image, size=size, mode="bilinear", antialias=True, align_corners=False).clamp(0, 1)
              for image in (left, right)]

@@ -308,6 +308,19 @@ def test_bad_arguments_name_themselves():
         GroundPlaneConfig(noisy_cell_min_share=0.0)
 
 
+def test_a_setting_or_map_of_another_kind_is_named():
+    """Found by an audit of the library called by hand: a DenseConfig given as the fit's config (or as
+    obstacle_truth's floor) failed on its first field (AttributeError: grid_columns), a map without its channel
+    axis in the unpacking of its shape."""
+    from svs_torch.depth.dense_config import DenseConfig
+    disparity, _ = floor_scene()
+    measured = torch.ones_like(disparity, dtype=torch.bool)
+    with pytest.raises(InputError, match="^config: expected a GroundPlaneConfig, got DenseConfig$"):
+        fit_ground_plane(disparity, measured, torch.tensor([0.1]), DenseConfig())
+    with pytest.raises(InputError, match=r"^disparity: expected \(B, 1, H, W\), got \(1, "):
+        fit_ground_plane(disparity[:, 0], measured, torch.tensor([0.1]))
+
+
 def test_the_split_leaves_the_floor_out():
     """The split over the map without the floor is the split of the other pixels alone."""
     disparity, is_floor = floor_scene(pitch_deg=25.0)

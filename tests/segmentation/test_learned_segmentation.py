@@ -284,6 +284,21 @@ def test_segment_learned_names_a_bad_threshold_or_config(argument, value):
     assert segment_learned(image, logits, probability_threshold=0.25).binary.all()
 
 
+def test_the_learned_pieces_name_a_setting_or_view_of_another_kind(scenes):
+    """Found by an audit of the learned segmenter's pieces called by hand: stereo_features given a DenseConfig
+    failed on a field (AttributeError: num_disparities) and took views of two sizes, each resized to the working
+    size in silence; obstacle_truth given a DenseConfig as its floor failed deep in the floor's fit."""
+    from svs_torch.segmentation.network import stereo_features
+    batch = scenes.batch
+    with pytest.raises(InputError, match="^config: expected an ObstacleNetConfig, got DenseConfig$"):
+        stereo_features(batch.left, batch.right, DenseConfig())
+    with pytest.raises(InputError, match=r"^right: expected the shape of left \("):
+        stereo_features(batch.left, batch.right[..., :-2])
+    with pytest.raises(InputError, match="^floor: expected a GroundPlaneConfig, got DenseConfig$"):
+        obstacle_truth(batch, SegmentationConfig(), DenseConfig())
+    assert stereo_features(batch.left, batch.right)[0].shape[:2] == (batch.batch_size, 6)
+
+
 @pytest.mark.parametrize("segmentation", ["stereo", None])
 def test_soft_object_depths_names_a_segmentation_of_another_kind(scenes, segmentation):
     """Was: a StereoSegmentation (what segment_stereo_learned returns) or None raised AttributeError on .labels
