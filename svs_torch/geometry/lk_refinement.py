@@ -12,7 +12,7 @@ import torch
 import torch.nn.functional as F
 
 from ..core.checks import (FLOAT32_MAX, InputError, check_device, check_dtype, check_finite_where, check_image,
-                           check_shape, real_or_nan)
+                           check_instance, check_shape, real_or_nan)
 from ..core.kernels.checks import check_nonempty
 from ..core.numerics import safe_sqrt
 from ..core.types import Matches
@@ -72,6 +72,9 @@ def refine_matched_points(left: torch.Tensor, right: torch.Tensor, points: Match
     flow to the kept left points and costs (passed through), not to the refined right points (detached)."""
     if config is None:
         return points, matches
+    # Another config failed as unknown keywords, matches of another kind on .valid (an audit).
+    check_instance(config, "config", MatchRefinementConfig)
+    check_instance(matches, "matches", Matches)
     refined = refine_matches_lk(left, right, points, scale, **asdict(config))
     dropped = matches.valid & ~refined.valid
     return refined, Matches(idx=torch.where(dropped, -1, matches.idx),
@@ -154,6 +157,7 @@ def refine_matches_lk(
     """
     dims = check_image(left, "left", check_range=False)
     check_shape(right, "right", [dims["B"], 1, dims["H"], dims["W"]])
+    check_instance(points, "points", MatchedPoints)  # a plain (left, right, valid) tuple failed on .left
     k = check_shape(points.left, "points.left", [dims["B"], "K", 2])["K"]
     check_shape(points.right, "points.right", [dims["B"], k, 2])
     check_shape(points.valid, "points.valid", [dims["B"], k])

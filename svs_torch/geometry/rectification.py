@@ -33,7 +33,7 @@ from typing import NamedTuple
 
 import torch
 
-from ..core.checks import InputError, check_dtype, check_image, check_shape
+from ..core.checks import InputError, check_dtype, check_image, check_instance, check_same_shape, check_shape
 from ..core.kernels.checks import canonical_bool, check_positive_hw
 from ..core.numerics import per_pair
 from . import kernels
@@ -310,11 +310,10 @@ def _check_inputs(F: torch.Tensor, points_left: torch.Tensor, points_right: torc
     for name, points in (("points_left", points_left), ("points_right", points_right)):
         check_shape(points, name, [dims["B"], "K", 2])
         check_dtype(points, name, "float")
-    if points_left.shape != points_right.shape:
-        raise InputError(f"points_right: expected the shape of points_left {tuple(points_left.shape)}, "
-                         f"got {tuple(points_right.shape)}")
+    check_same_shape(points_left, "points_left", points_right, "points_right")
     check_shape(inliers, "inliers", [dims["B"], points_left.shape[1]])
     check_dtype(inliers, "inliers", "bool")
+    check_instance(config, "config", RectificationConfig)  # another kind failed on its first field (an audit)
     if config.x_alignment not in ("parallel", "hartley"):
         raise InputError(f"x_alignment: expected 'parallel' or 'hartley', got {config.x_alignment!r}")
     if not isinstance(image_hw, torch.Tensor):

@@ -377,6 +377,22 @@ def test_refine_lk_checks_inputs():
     assert matching.refine_matches_lk(left, right, empty) is empty
 
 
+def test_refinement_called_by_hand_names_arguments_of_another_kind():
+    """Found by an audit of the library called by hand: points as a plain (left, right, valid) tuple raised
+    AttributeError on .left, refine_matched_points given another config a TypeError of unknown keywords, and
+    matches of another kind an AttributeError on .valid."""
+    from svs_torch.geometry.lk_refinement import MatchRefinementConfig, refine_matched_points
+    left, right, points = lk_problem([(0.0, 0.0)])
+    matches = Matches(torch.zeros_like(points.valid, dtype=torch.int64), torch.zeros(points.valid.shape))
+    with pytest.raises(InputError, match="^points: expected a MatchedPoints, got tuple$"):
+        matching.refine_matches_lk(left, right, tuple(points))
+    with pytest.raises(InputError, match="^config: expected a MatchRefinementConfig, got dict$"):
+        refine_matched_points(left, right, points, matches, None, {"iterations": 8})
+    with pytest.raises(InputError, match="^matches: expected a Matches, got tuple$"):
+        refine_matched_points(left, right, points, (matches.idx, matches.cost), None, MatchRefinementConfig())
+    assert refine_matched_points(left, right, points, matches, None, MatchRefinementConfig())[0].valid.shape == (1, 30)
+
+
 def test_pipeline_refinement_makes_real_matches_more_precise(data_dir):
     """On a real Middlebury pair at 320 px, the default pipeline's refined matches are closer to GT disparity
     than the same matches unrefined, and dropped rows leave the matches and points consistent."""

@@ -284,6 +284,9 @@ def test_empty_and_input_errors(generator):
     for size in (480, None):  # was: TypeError from len(), naming no argument
         with pytest.raises(InputError, match=rf"image_hw: expected \(height, width\) as two ints .*, got {size}$"):
             rectify_uncalibrated(F, left, right, all_inliers(left), size)
+    # Found by an audit of the library called by hand: another kind of config raised AttributeError (x_alignment).
+    with pytest.raises(InputError, match="^config: expected a RectificationConfig, got dict$"):
+        rectify_uncalibrated(F, left, right, all_inliers(left), SIZE_HW, {"x_alignment": "parallel"})
 
 
 def test_gradcheck(generator):
