@@ -95,6 +95,9 @@ def check_dtype(tensor: torch.Tensor, name: str, kinds: str) -> None:
     """Check the dtype family: ``"float"`` (float32 or float64), ``"bool"``, ``"int"`` (any integer), or several
     joined by ``|``."""
     allowed = kinds.split("|")
+    if not isinstance(tensor, torch.Tensor):  # a list or a number failed on .is_meta below (an audit)
+        kind = "float32 or float64" if allowed == ["float"] else " or ".join(allowed)
+        raise InputError(f"{name}: expected {_a(kind)} {kind} tensor, got {type(tensor).__name__}")
     if tensor.is_meta:  # shapes without values: every check that reads a value (bool(), item()) failed deep in torch
         raise InputError(f"{name}: expected a tensor with values, got one on the meta device")
     dtype = tensor.dtype

@@ -159,5 +159,11 @@ def test_an_error_takes_the_article_its_expectation_needs():
         check_dtype(torch.zeros(1), "mask", "bool")
     with pytest.raises(InputError, match=r"^objects: expected an ObjectDepths, got int$"):
         check_instance(1, "objects", ObjectDepths)
+    # A list or a number where a tensor belongs failed on .is_meta inside the check (AttributeError; an audit of the
+    # library called by hand: svs_torch.pipeline.soft.quantize_straight_through([0.5])).
+    with pytest.raises(InputError, match=r"^image: expected a float32 or float64 tensor, got list$"):
+        check_dtype([0.5], "image", "float")
+    with pytest.raises(InputError, match=r"^labels: expected an int tensor, got int$"):
+        check_dtype(1, "labels", "int")
     with pytest.raises(InputError, match=r"^batch: expected a StereoBatch, got int$"):
         check_instance(1, "batch", StereoBatch)
