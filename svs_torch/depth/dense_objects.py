@@ -19,7 +19,7 @@ import dataclasses
 
 import torch
 
-from ..core.checks import InputError, check_dtype, check_percentiles, check_shape
+from ..core.checks import InputError, check_dtype, check_instance, check_percentiles, check_shape
 from ..core.kernels.checks import check_nonempty, check_rows
 from ..geometry.rectification import apply_homography
 from . import kernels
@@ -43,6 +43,8 @@ def _per_pair(value: torch.Tensor | float, b: int, like: torch.Tensor, name: str
 def _check_inputs(dense: DenseDisparity, labels: torch.Tensor, objects: ObjectDepths,
                   percentiles: tuple[float, float]) -> tuple[int, float, float]:
     """:func:`dense_object_depths`' arguments checked: the batch size and the two percentiles."""
+    check_instance(dense, "dense", DenseDisparity)  # a (disparity, valid) tuple failed on .disparity_px (an audit)
+    check_instance(objects, "objects", ObjectDepths)
     disparity = dense.disparity_px
     dims = check_shape(disparity, "dense.disparity_px", ["B", 1, "H", "W"])
     b, h, w = dims["B"], dims["H"], dims["W"]
@@ -173,8 +175,8 @@ def dense_object_depths(dense: DenseDisparity, labels: torch.Tensor, objects: Ob
         ``objects`` with ``depth_median_m``, ``depth_low_m``, ``depth_high_m``, ``valid`` from the dense pixels
         and ``num_valid_px``, ``num_in_view_px`` ``(B, N)`` int64 set.
     """
-    disparity = dense.disparity_px
     b, low, high = _check_inputs(dense, labels, objects, percentiles)
+    disparity = dense.disparity_px
     focal = _per_pair(focal_px, b, disparity, "focal_px").view(b, 1)
     baseline = _per_pair(baseline_m, b, disparity, "baseline_m").view(b, 1)
     doffs = _per_pair(doffs_px, b, disparity, "doffs_px").view(b, 1)
@@ -336,6 +338,7 @@ def range_from_objects(objects: ObjectDepths, focal_px: torch.Tensor | float, ba
     (the differentiable pass chooses on the hard ones, so that R_min is the object the hard pipeline named).
     Differentiable w.r.t. the nearest and farthest valid ``objects.depth_median_m`` and the calibration;
     ``num_disparities`` and ``valid`` are not."""
+    check_instance(objects, "objects", ObjectDepths)  # None failed on .depth_median_m (an audit)
     median = objects.depth_median_m
     b = median.shape[0]
     valid = objects.valid

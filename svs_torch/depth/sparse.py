@@ -274,7 +274,9 @@ def object_depths(labels: torch.Tensor, region_labels: torch.Tensor, points_left
 def nearest_obstacle(objects: ObjectDepths) -> NearestObstacle:
     """The valid object with the smallest median depth, its depth and side (Sec. 3.4's warning to the user).
     Ranked by the median, not by the near surface then said: noise pulls a far wall's low percentile near, and that
-    rule named walls 4-9 m away as obstacles under 2 m (``experiments/nearest_rule.md``)."""
+    rule named walls 4-9 m away as obstacles under 2 m (``experiments/nearest_rule.md``). Differentiable w.r.t.
+    the chosen object's ``depth_median_m`` and ``depth_low_m`` (a gather); the slot, side and validity are not."""
+    check_instance(objects, "objects", ObjectDepths)  # None or a dict failed on .valid (an audit)
     candidates = torch.where(objects.valid, objects.depth_median_m, torch.inf)
     sides = objects.side
     if candidates.shape[1] == 0:  # no slot at all: one empty candidate keeps the reductions defined
