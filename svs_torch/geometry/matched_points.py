@@ -8,7 +8,7 @@ from typing import NamedTuple
 
 import torch
 
-from ..core.checks import InputError, check_dtype, check_shape
+from ..core.checks import InputError, check_dtype, check_instance, check_shape
 from ..core.types import Matches
 
 __all__ = ["MatchedPoints", "gather_matched_points"]
@@ -42,6 +42,7 @@ def gather_matched_points(xy_left: torch.Tensor, xy_right: torch.Tensor, matches
     """
     dims = check_shape(xy_left, "xy_left", ["B", "K", 2])
     check_shape(xy_right, "xy_right", [dims["B"], "K2", 2])
+    check_instance(matches, "matches", Matches)  # an (idx,) tuple failed on .idx (an audit)
     check_shape(matches.idx, "matches.idx", [dims["B"], dims["K"]])
     check_dtype(matches.idx, "matches.idx", "int")
     # An index past the right keypoints failed inside torch's gather, and with no right keypoints at all it

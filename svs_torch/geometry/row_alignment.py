@@ -44,8 +44,8 @@ from dataclasses import dataclass
 
 import torch
 
-from ..core.checks import (InputError, check_count, check_device, check_dtype, check_finite_where, check_real,
-                           check_shape)
+from ..core.checks import (InputError, check_count, check_device, check_dtype, check_finite_where, check_instance,
+                           check_real, check_shape)
 from ..core.kernels.checks import check_positive_hw
 from . import kernels
 from .ransac_sampling import draw_minimal_samples
@@ -236,8 +236,8 @@ def fit_row_alignment(points_left: torch.Tensor, points_right: torch.Tensor, val
     check_positive_hw(image_hw, dims["B"])  # a 0 x 0 pair was taken (an audit)
     check_dtype(points_left, "points_left", "float")
     check_dtype(points_right, "points_right", "float")
-    if valid.dtype != torch.bool:
-        raise InputError(f"valid: expected a bool tensor, got {valid.dtype}")
+    check_dtype(valid, "valid", "bool")
+    check_instance(config, "config", RowAlignmentConfig)  # another kind failed on its first field (an audit)
     # As RANSAC and the match refinement check them (an audit: NaN points in valid rows were taken).
     for name, points in (("points_left", points_left), ("points_right", points_right)):
         check_finite_where(points, name, valid.unsqueeze(-1), "valid")

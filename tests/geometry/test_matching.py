@@ -377,6 +377,14 @@ def test_refine_lk_checks_inputs():
     assert matching.refine_matches_lk(left, right, empty) is empty
 
 
+def test_gather_matched_points_names_matches_of_another_kind():
+    """Found by an audit of the library called by hand: an (idx,) tuple for the matches raised AttributeError on
+    .idx, naming no argument."""
+    xy = torch.zeros(1, 3, 2)
+    with pytest.raises(InputError, match="^matches: expected a Matches, got tuple$"):
+        gather_matched_points(xy, xy, (torch.zeros(1, 3, dtype=torch.int64),))
+
+
 def test_refinement_called_by_hand_names_arguments_of_another_kind():
     """Found by an audit of the library called by hand: points as a plain (left, right, valid) tuple raised
     AttributeError on .left, refine_matched_points given another config a TypeError of unknown keywords, and

@@ -198,6 +198,9 @@ def test_alignment_rejects_bad_input():
         fit_row_alignment(points, torch.zeros(1, 8, 3), torch.ones(1, 8, dtype=torch.bool), torch.tensor([[240, 320]]))
     with pytest.raises(InputError, match="min_inliers"):
         RowAlignmentConfig(min_inliers=2)
+    # Found by an audit of the library called by hand: another kind of config raised AttributeError (threshold_px).
+    with pytest.raises(InputError, match="^config: expected a RowAlignmentConfig, got dict$"):
+        fit_row_alignment(points, points, torch.ones(1, 8, dtype=torch.bool), torch.tensor([[240, 320]]), {})
 
 
 @pytest.mark.parametrize("focal_px, expected", [
