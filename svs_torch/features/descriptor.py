@@ -24,7 +24,7 @@ import math
 
 import torch
 
-from ..core.checks import InputError, check_dtype, check_image, check_shape
+from ..core.checks import InputError, check_dtype, check_image, check_instance, check_shape
 from ..core.compiling import maybe_compiled
 from ..core.kernels.checks import check_nonempty
 from ..core.types import Keypoints
@@ -43,6 +43,7 @@ _NUM_WINDOWS = 72  # window start every 5°, as OpenCV
 
 def _check_keypoints(image: torch.Tensor, keypoints: Keypoints) -> None:
     check_image(image, "image", check_range=False)
+    check_instance(keypoints, "keypoints", Keypoints)  # None or a tuple of its fields failed on .xy (an audit)
     b = image.shape[0]
     k = check_shape(keypoints.xy, "keypoints.xy", [b, "K", 2])["K"]
     check_shape(keypoints.scale, "keypoints.scale", [b, k])

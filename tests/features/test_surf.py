@@ -362,6 +362,10 @@ def test_errors_name_the_argument():
     kp = make_keypoints([[1.0, 1.0]], [1.2])
     with pytest.raises(InputError, match=r"keypoints.xy: expected \(2, K, 2\)"):
         describe_surf(torch.rand(2, 1, 20, 20), kp)
+    # Found by an audit of the library called by hand: None or a tuple of the fields raised AttributeError on .xy.
+    for keypoints in (None, tuple(vars(kp).values())):
+        with pytest.raises(InputError, match=f"^keypoints: expected a Keypoints, got {type(keypoints).__name__}$"):
+            describe_surf(torch.rand(1, 1, 20, 20), keypoints)
 
 
 @pytest.mark.parametrize("bad", [math.nan, math.inf])
