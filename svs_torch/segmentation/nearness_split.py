@@ -20,6 +20,7 @@ import math
 
 import torch
 
+from ..core.checks import check_dtype, check_real, check_shape
 from ..core.mask_reductions import all_along, any_true
 from ..depth.quantiles import labelled_quantile, row_quantile
 from . import kernels
@@ -39,7 +40,16 @@ def nearness_split(disparity: torch.Tensor, min_near_share: float, exclude: torc
     :mod:`.ground_plane`: it spans every disparity from the feet to the horizon and would move the split by its
     extent rather than by the obstacles'); a pair that excludes every pixel keeps them all. Not differentiable
     (``disparity`` is detached: module docstring)."""
-    b = disparity.shape[0]
+    # Called by hand, a float exclude failed in a bitwise and, one of another size in the quantiles naming their
+    # labels, a map without its channel axis was taken (an audit). Shares past [0, 1] mean never or always.
+    b = check_shape(disparity, "disparity", ["B", 1, "H", "W"])["B"]
+    check_dtype(disparity, "disparity", "float")
+    if exclude is not None:
+        check_shape(exclude, "exclude", list(disparity.shape))
+        check_dtype(exclude, "exclude", "bool")
+    for name, value in (("min_near_share", min_near_share), ("max_retaken_near_share", max_retaken_near_share),
+                        ("min_retaken_gap", min_retaken_gap)):
+        check_real(value, name)
     disparity = disparity.detach()
     if exclude is not None:
         exclude = exclude & ~all_along(exclude.flatten(1), 1).view(b, 1, 1, 1)

@@ -349,6 +349,25 @@ def test_measuring_nearness_by_hand_names_a_wrong_setting_or_network():
     assert measure_nearness_disparity(left, right, NearnessNetConfig(), GroundPlaneConfig(), rig).ground is not None
 
 
+def test_the_split_called_by_hand_names_a_bad_argument():
+    """Found by an audit of the nearness segmenter's pieces called by hand: nearness_split took no look at its
+    arguments, so a float exclude mask failed in a bitwise and (NotImplementedError), one of another size in the
+    quantiles naming their labels, and a map without its channel axis was taken as one of B = 1."""
+    from svs_torch.segmentation.nearness_split import nearness_split
+    disparity = torch.rand(1, 1, 10, 10, generator=torch.Generator().manual_seed(0)) * 20
+    half = torch.zeros(1, 1, 10, 10, dtype=torch.bool)
+    half[..., :2, :] = True
+    with pytest.raises(InputError, match="^exclude: expected a bool tensor, got torch.float32$"):
+        nearness_split(disparity, 0.1, half.float())
+    with pytest.raises(InputError, match=r"^exclude: expected \(1, 1, 10, 10\), got \(1, 1, 5, 10\)$"):
+        nearness_split(disparity, 0.1, half[..., :5, :])
+    with pytest.raises(InputError, match=r"^disparity: expected \(B, 1, H, W\), got \(1, 10, 10\)$"):
+        nearness_split(disparity[:, 0], 0.1)
+    with pytest.raises(InputError, match="^min_near_share: expected a finite number"):
+        nearness_split(disparity, "0.1")
+    assert nearness_split(disparity, 2.0, half)[2].tolist() == [True]  # a share past 1: always taken again
+
+
 def test_region_medians_equal_the_kept_region_lower_median():
     """The two-sort median per region equals depth.kept_region_lower_median over every label (its (B, L, P) form)."""
     from svs_torch.depth.quantiles import kept_region_lower_median
