@@ -245,6 +245,7 @@ def object_depths(labels: torch.Tensor, region_labels: torch.Tensor, points_left
     check_dtype(region_labels, "region_labels", "int")
     check_shape(points_left, "points_left", [labels.shape[0], "K", 2])
     check_dtype(points_left, "points_left", "float|int")  # a complex one failed in its rounding (an audit)
+    check_instance(depths, "depths", PointDepths)  # None failed on .depth_m (an audit)
     _check_values(depths.depth_m, "depths.depth_m", depths.valid, "depths.valid")
     check_shape(depths.depth_m, "depths.depth_m", list(points_left.shape[:2]))
     if image_hw is None:

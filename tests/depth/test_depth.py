@@ -439,7 +439,8 @@ def test_without_statistics_only_the_depths_and_the_slots_geometry_are_made(gene
 
 def test_the_object_statistics_name_a_container_of_another_kind():
     """Found by an audit of the library called by hand: nearest_obstacle given None or a dict failed on .valid,
-    range_from_objects given None on .depth_median_m, dense_object_depths given a (disparity, valid) tuple for its
+    range_from_objects given None on .depth_median_m, object_depths given None for its depths on .depth_m,
+    dense_object_depths given a (disparity, valid) tuple for its
     dense map on .disparity_px and None for its objects on .label (each an AttributeError naming no argument)."""
     from svs_torch.depth.dense_objects import dense_object_depths, range_from_objects
     for objects in (None, {}):
@@ -448,5 +449,7 @@ def test_the_object_statistics_name_a_container_of_another_kind():
     with pytest.raises(InputError, match="^objects: expected an ObjectDepths, got NoneType$"):
         range_from_objects(None, 300.0, 0.1)
     disparity, valid = torch.ones(1, 1, 4, 5), torch.ones(1, 1, 4, 5, dtype=torch.bool)
+    with pytest.raises(InputError, match="^depths: expected a PointDepths, got NoneType$"):
+        object_depths(torch.ones(1, 1, 4, 5, dtype=torch.int64), torch.tensor([[1]]), torch.zeros(1, 3, 2), None)
     with pytest.raises(InputError, match="^dense: expected a DenseDisparity, got tuple$"):
         dense_object_depths((disparity, valid), torch.ones(1, 1, 4, 5, dtype=torch.int64), None, 300.0, 0.1)
