@@ -41,7 +41,7 @@ import dataclasses
 
 import torch
 
-from ..core.checks import check_dtype, check_dtypes, check_shape
+from ..core.checks import InputError, check_count, check_dtype, check_dtypes, check_shape
 from ..core.numerics import per_pair
 from ..depth.block_matching import fill_invalid_rows
 from ..depth.cost_volume import prefilter_xsobel
@@ -104,6 +104,28 @@ def _window_costs(left: torch.Tensor, right: torch.Tensor, pixels: torch.Tensor,
     return (left_values - right_values).abs().sum(dim=-1)
 
 
+def _check_fit_shapes(left: torch.Tensor, right: torch.Tensor, pixels: torch.Tensor, winner: torch.Tensor,
+                      min_disparity_px: torch.Tensor, image_w: torch.Tensor, window_size: int,
+                      costs: torch.Tensor | None) -> None:
+    """:func:`subpixel_disparity`'s shapes, window and pixels named: called by hand, each of another shape (pixels
+    without their pair column, a winner or bounds of another length, a pixel outside the images) failed in an
+    index deep inside torch, and an even or zero window was taken (an audit)."""
+    b, h, w = check_shape(left, "left", ["B", 1, "H", "W"]).values()
+    check_shape(right, "right", [b, 1, h, w])
+    p = check_shape(pixels, "pixels", ["P", 3])["P"]
+    check_shape(winner, "winner", [p])
+    for name, value in (("min_disparity_px", min_disparity_px), ("image_w", image_w)):
+        check_shape(value, name, [b])
+        check_dtype(value, name, "int")
+    if costs is not None:
+        check_shape(costs, "costs", [p, 3])
+    check_count(window_size, "window_size", least=1)
+    if window_size % 2 == 0:
+        raise InputError(f"window_size: expected an odd int >= 1, got {window_size!r}")
+    if p and not bool(((pixels >= 0) & (pixels < torch.tensor([b, h, w], device=pixels.device))).all()):
+        raise InputError(f"pixels: expected (pair, row, column) rows inside the images' (B, H, W) = ({b}, {h}, {w})")
+
+
 def subpixel_disparity(left: torch.Tensor, right: torch.Tensor, pixels: torch.Tensor, winner: torch.Tensor,
                        min_disparity_px: torch.Tensor, image_w: torch.Tensor, window_size: int,
                        costs: torch.Tensor | None = None) -> torch.Tensor:
@@ -114,6 +136,7 @@ def subpixel_disparity(left: torch.Tensor, right: torch.Tensor, pixels: torch.Te
     ``(B,)``, or a neighbour's right pixel outside the pair's width ``image_w`` ``(B,)``). Differentiable w.r.t.
     both images (the winner is a constant)."""
     check_dtypes(left=(left, "float"), right=(right, "float"), pixels=(pixels, "int"), winner=(winner, "int"))
+    _check_fit_shapes(left, right, pixels, winner, min_disparity_px, image_w, window_size, costs)
     if costs is None:
         costs = _window_costs(left, right, pixels, winner.unsqueeze(1) + torch.arange(-1, 2, device=left.device),
                               window_size)

@@ -143,6 +143,29 @@ def test_subpixel_disparity_refuses_what_it_cannot_index_or_fit(argument):
     assert subpixel_disparity(left, right, pixels, winner, *bounds, 5).dtype == torch.float32
 
 
+@pytest.mark.parametrize("argument, message", [
+    ("pixels without the pair", r"^pixels: expected \(P, 3\), got \(1, 2\)$"),
+    ("a pixel past the rows", r"^pixels: expected \(pair, row, column\) rows inside the images' \(B, H, W\) = "
+                              r"\(1, 20, 30\)$"),
+    ("two winners", r"^winner: expected \(1\), got \(2\)$"),
+    ("bounds of two pairs", r"^min_disparity_px: expected \(1\), got \(2\)$"),
+    ("an even window", r"^window_size: expected an odd int >= 1, got 4$")])
+def test_subpixel_disparity_names_an_argument_of_another_shape(argument, message):
+    """Found by an audit of the differentiable pieces called by hand: pixels without their pair column, a pixel
+    outside the images, a winner or bounds of another length failed in an index deep inside torch ('index out of
+    range in self'), and an even window was fitted in silence."""
+    left, right = torch.rand(1, 1, 20, 30), torch.rand(1, 1, 20, 30)
+    call = {"pixels": torch.tensor([[0, 10, 20]]), "winner": torch.tensor([5]), "min_disparity_px": torch.tensor([0]),
+            "image_w": torch.tensor([30]), "window_size": 5}
+    call.update({"pixels without the pair": {"pixels": torch.tensor([[10, 20]])},
+                 "a pixel past the rows": {"pixels": torch.tensor([[0, 20, 20]])},
+                 "two winners": {"winner": torch.tensor([5, 6])},
+                 "bounds of two pairs": {"min_disparity_px": torch.tensor([0, 0])},
+                 "an even window": {"window_size": 4}}[argument])
+    with pytest.raises(InputError, match=message):
+        subpixel_disparity(left, right, **call)
+
+
 def test_bands_hold_the_order_statistics_the_quantile_interpolates(generator):
     """A 30-member object: the median interpolates ranks 14 and 15, a 1 % band around it by value would be empty."""
     depth = torch.rand(1, 40, generator=generator, dtype=torch.float64)
