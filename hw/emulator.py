@@ -53,7 +53,10 @@ class _BoardPort(threading.Thread):
         self.send_timeout_s = send_timeout_s
         self.link_bytes_per_s = link_bytes_per_s
         self.stop_event = stop
-        self.listener = socket.create_server((host, port))
+        try:
+            self.listener = socket.create_server((host, port))
+        except OSError as err:  # said with the board and port (the option a user gives), not errno's words alone
+            raise ListenError(err, state.camera, host, port) from err
         self.listener.setblocking(False)
         self.port = self.listener.getsockname()[1]
         self.client: socket.socket | None = None
@@ -66,10 +69,14 @@ class _BoardPort(threading.Thread):
             # The emulator keeps the slave end open, so the master never sees EIO when the driver closes it.
             import tty  # here, not at the top: Windows has no tty (termios), and --emulator then failed to import
 
-            self.pty_master, self.pty_slave = os.openpty()
-            tty.setraw(self.pty_slave)
-            os.set_blocking(self.pty_master, False)
-            self.pty_path = os.ttyname(self.pty_slave)
+            try:  # (not a ListenError: its --left-port was the wrong option to change, and the listener stayed open)
+                self.pty_master, self.pty_slave = os.openpty()
+                tty.setraw(self.pty_slave)
+                os.set_blocking(self.pty_master, False)
+                self.pty_path = os.ttyname(self.pty_slave)
+            except OSError as err:
+                self.close()
+                raise OSError(f"--pty: the {state.camera} board cannot open a pseudo-terminal: {err}") from err
 
     def run(self) -> None:
         try:
@@ -263,10 +270,10 @@ class EmulatorServer:
             for (name, state), port in zip(self.cameras.items(), (left_port, right_port)):
                 self._ports[name] = _BoardPort(state, host, port, use_pty, banner, send_timeout_s, self._stop,
                                                link_bytes_per_s)
-        except OSError as err:  # said with the board and port (the option a user gives), not errno's words alone
+        except OSError:  # a port that cannot listen (ListenError), a pty not opened: none left open
             for board in self._ports.values():
                 board.close()
-            raise ListenError(err, name, host, port) from err
+            raise
         self.host = host
         self._started = False
 
@@ -358,6 +365,9 @@ def main(argv: list[str] | None = None) -> int:
     except ListenError as err:  # a port in use, an address not this machine's: the option to change
         print(f"hw.emulator: error: {err.option}: {err}", file=sys.stderr)
         return 2
+    except OSError as err:  # an image folder it may not read, no pty to be had: as the system says it
+        print(f"hw.emulator: error: {err}", file=sys.stderr)
+        return 1
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     try:

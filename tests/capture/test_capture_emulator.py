@@ -1362,3 +1362,45 @@ def test_emulator_names_the_option_of_a_port_it_cannot_listen_on(capsys, board):
     assert emulator_main(["--host", "192.0.2.1", "--left-port", "0", "--right-port", "0"]) == 2  # TEST-NET-1
     assert "error: --host: the left board cannot listen on 192.0.2.1 port 0: " in capsys.readouterr().err
     assert issubclass(ListenError, OSError)  # what callers of EmulatorServer caught stays caught
+
+
+def test_emulator_says_an_image_folder_it_may_not_read_in_one_line(capsys, monkeypatch, tmp_path):
+    """Found by reviewing the change that named the option of a port that cannot listen: main then caught that
+    error alone, so an image folder the user may not list (PermissionError, as a non-root user meets it) came out as a
+    traceback where it had been one line, exit 1."""
+    import hw.frames as frames
+    from hw.emulator import main as emulator_main
+
+    def denied(folder):
+        raise PermissionError(13, "Permission denied", str(folder))
+
+    monkeypatch.setattr(frames, "_find_pairs", denied)
+    assert emulator_main(["--images", str(tmp_path), "--left-port", "0", "--right-port", "0"]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"hw.emulator: error: [Errno 13] Permission denied: '{tmp_path}'" in err, err
+
+
+def test_emulator_names_pty_not_the_port_where_no_pseudo_terminal_opens(capsys, monkeypatch):
+    """Found by the same review: a --pty the system could not give (a container without /dev/pts: "out of pty
+    devices") was said as "--left-port: the left board cannot listen on 127.0.0.1 port 0: out of pty devices", the
+    wrong option to change, and the board's listening socket was left open."""
+    import hw.emulator as emulator
+
+    listeners = []
+    real_create_server = socket.create_server
+
+    def create_server(*args, **kwargs):
+        listeners.append(real_create_server(*args, **kwargs))
+        return listeners[-1]
+
+    def no_pty():
+        raise OSError("out of pty devices")
+
+    monkeypatch.setattr(emulator.socket, "create_server", create_server)
+    monkeypatch.setattr(emulator.os, "openpty", no_pty)
+    assert emulator.main(["--pty", "--left-port", "0", "--right-port", "0"]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "hw.emulator: error: --pty: the left board cannot open a pseudo-terminal: out " \
+                                      "of pty devices" in err, err
+    assert listeners and all(listener.fileno() == -1 for listener in listeners)  # closed
+
