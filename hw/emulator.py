@@ -166,13 +166,13 @@ class _BoardPort(threading.Thread):
         if reply.delay_s > 0 and self.stop_event.wait(reply.delay_s):
             return None
         step = max(1, reply.chunk_bytes if reply.chunk_bytes > 0 else len(reply.data))
-        starts = range(0, len(reply.data), step)
-        if self.link_bytes_per_s:  # a frame's header first, as a UART sends it, then pieces of _PACED_CHUNK_BYTES
-            step = min(step, _PACED_CHUNK_BYTES)
-            starts = [0, *range(min(_PACED_FIRST_BYTES, step), len(reply.data), step)]
+        step = min(step, _PACED_CHUNK_BYTES) if self.link_bytes_per_s else step
+        starts = list(range(0, len(reply.data), step))
+        if self.link_bytes_per_s and _PACED_FIRST_BYTES < min(step, len(reply.data)):  # a frame's header first, as a
+            starts.insert(1, _PACED_FIRST_BYTES)  # UART sends it: within the first chunk, no drip pause after it
         began_s = last_write_s = time.monotonic()
         for start, end in zip(starts, [*starts[1:], len(reply.data)]):
-            if start and reply.chunk_delay_s > 0 and self.stop_event.wait(reply.chunk_delay_s):
+            if start % step == 0 and start and reply.chunk_delay_s > 0 and self.stop_event.wait(reply.chunk_delay_s):
                 return None
             piece = reply.data[start:end]
             if self.link_bytes_per_s:

@@ -1404,3 +1404,32 @@ def test_emulator_names_pty_not_the_port_where_no_pseudo_terminal_opens(capsys, 
                                       "of pty devices" in err, err
     assert listeners and all(listener.fileno() == -1 for listener in listeners)  # closed
 
+
+
+def test_a_paced_drip_keeps_its_chunks_and_pauses(monkeypatch):
+    """Found by reviewing the change that sends a paced frame's header first (16 bytes, as a UART sends it): under
+    ``--drip-chunk 100 --drip-delay D`` at the emulator's default link rate, the header split became a drip chunk of
+    its own, so a 300-byte reply paused three times (after 16, 116 and 216 bytes) instead of twice, after 100 and 200
+    bytes, as the fault says ("every reply is sent in chunks of this many bytes")."""
+    from types import SimpleNamespace
+
+    from hw.emulator import _BoardPort
+    from hw.emulator_state import Reply
+
+    pauses, pieces = [], []
+
+    class Clock:
+        @staticmethod
+        def wait(seconds):
+            if seconds == 0.01:
+                pauses.append(sum(map(len, pieces)))  # bytes sent before the pause
+            return False
+
+    board = SimpleNamespace(link_bytes_per_s=1e12, stop_event=Clock(),
+                            _write=lambda out, data: pieces.append(bytes(data)) or True)
+    data = bytes(range(256)) + bytes(44)
+    assert _BoardPort._send_reply(board, Reply(data, chunk_bytes=100, chunk_delay_s=0.01), None) is not None
+    assert b"".join(pieces) == data and pauses == [100, 200]
+    assert len(pieces[0]) == 16  # the header still leaves first
+    pieces.clear()
+    assert _BoardPort._send_reply(board, Reply(b""), None) is not None and pieces == []  # nothing, no empty write
