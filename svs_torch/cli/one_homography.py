@@ -13,20 +13,21 @@ __all__ = ["ONE_HOMOGRAPHY", "PARALLAX_FACTOR", "PARALLAX_POINTS", "one_homograp
 #: homography, half a pixel at most 86 %, and 95-100 % of a turned camera's.
 THRESHOLD_PX = 1.0
 
-#: What a ranged pair whose matches all lie on one homography is told (an audit: Teddy's left view turned 3° about
-#: the camera's y axis, no baseline, was ranged "OK", "verified", at 1.71 m by the SVS model (0.53 m turned at
-#: Teddy's focal length), where a pure rotation holds no depth; OpenCV's findFundamentalMat and
-#: stereoRectifyUncalibrated accept it as well). The shared Middlebury pairs put at most 77 % of their inliers on
-#: one homography at 320 x 240.
 #: A pair is not told :data:`ONE_HOMOGRAPHY` where this many of its inliers lie :data:`PARALLAX_FACTOR` times the
 #: threshold or more off the homography: parallax, which a turning camera without a baseline cannot make. Why: the
 #: emulator's scene (boxes before a textured wall) put 92 % of its inliers on the wall's homography, and every pair
 #: of ``guide --emulator`` was told that no distance may hold, while its boxes' 22 inliers lay 8 px off it. Teddy's
 #: view turned 1.5-6 degrees about the camera's y axis, no baseline, leaves 0-2 inliers 5 px off; the shared
 #: Middlebury pairs at 320 x 240 19-163.
-PARALLAX_FACTOR = 5.0
 PARALLAX_POINTS = 8
+#: How far off the homography an inlier shows parallax, in multiples of its threshold (:data:`PARALLAX_POINTS`).
+PARALLAX_FACTOR = 5.0
 
+#: What a ranged pair whose matches all lie on one homography is told (an audit: Teddy's left view turned 3° about
+#: the camera's y axis, no baseline, was ranged "OK", "verified", at 1.71 m by the SVS model (0.53 m turned at
+#: Teddy's focal length), where a pure rotation holds no depth; OpenCV's findFundamentalMat and
+#: stereoRectifyUncalibrated accept it as well). The shared Middlebury pairs put at most 77 % of their inliers on
+#: one homography at 320 x 240.
 ONE_HOMOGRAPHY = ("{share:.0%} of the RANSAC inliers fit one homography: the distance holds for a flat surface "
                   "facing the cameras (a wall, a poster); if the scene has depth, the right camera turned with no "
                   "baseline between the views (two frames of one turning camera) and no distance holds")

@@ -788,6 +788,28 @@ def test_a_wall_with_obstacles_before_it_is_not_told_its_matches_fit_one_homogra
     assert code == 0 and report["status"] == "OK" and report["reason"] is None
 
 
+def test_the_one_homography_constants_keep_their_own_doc_comments():
+    """Found by reviewing the change that added the parallax rule: its ``#:`` lines were put under ONE_HOMOGRAPHY's,
+    one block above PARALLAX_FACTOR, so help and Sphinx gave PARALLAX_FACTOR the told text's account ("What a ranged
+    pair ... is told") and ONE_HOMOGRAPHY and PARALLAX_POINTS, the "this many" of the rule, none."""
+    import inspect
+
+    from svs_torch.cli import one_homography
+
+    lines = inspect.getsource(one_homography).splitlines()
+
+    def doc(name: str) -> str:  # the ``#:`` lines right above ``name = ...``, as Sphinx reads them
+        at = next(i for i, line in enumerate(lines) if line.startswith(f"{name} = "))
+        above = []
+        while lines[at - 1 - len(above)].startswith("#:"):
+            above.append(lines[at - 1 - len(above)][2:].strip())
+        return " ".join(reversed(above))
+
+    assert doc("ONE_HOMOGRAPHY").startswith("What a ranged pair whose matches all lie on one homography is told")
+    assert doc("PARALLAX_POINTS").startswith("A pair is not told :data:`ONE_HOMOGRAPHY` where this many")
+    assert "What a ranged pair" not in doc("PARALLAX_POINTS") and doc("PARALLAX_FACTOR")
+
+
 def test_a_pair_unranged_for_an_obstacle_nearer_than_the_range_searched_is_told_so(data_dir, capsys, tmp_path):
     """Found by an audit of degenerate geometry: a textured box 0.27 m away (110 px by the SVS model) before Teddy's
     view shifted 20 px read NO_DENSE_DEPTH, the status of a flat or occluded pair, with no hint that something is
