@@ -3,6 +3,7 @@ the fallback without a compiler, the on-disk cache. The dense-stage kernel's own
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import platform
 import shutil
@@ -1095,3 +1096,36 @@ def test_the_largest_window_a_configuration_takes_runs_at_every_size(data_dir):
     result = estimate_obstacle_depth(batch, PipelineConfig(dense=DenseConfig(window_size=201)))
     assert int(result.status[0]) in (PipelineStatus.OK, PipelineStatus.NO_DENSE_DEPTH)
 
+
+
+def _negative_view(values: torch.Tensor) -> torch.Tensor:
+    """``values`` as a negative view (``z.conj().imag``): the same numbers, its memory holding their negation."""
+    view = torch.complex(torch.zeros_like(values), -values).conj().imag
+    assert view.is_neg() and torch.equal(view, values)
+    return view
+
+
+@needs_kernel
+def test_negative_views_are_read_as_their_values(data_dir):
+    """A one-element negative view is contiguous, so the wrappers' ``.contiguous()`` kept it and the kernels read
+    its memory, the negated values: a quantile [0.5] was read as -0.5, a rank before the sorted members (memory
+    outside them came back, -8.7e13), and Teddy's (1,) calibration as its negation ranged it at 0 m. Now such a
+    tensor takes the torch path (found by an audit of hostile calls)."""
+    from svs_torch import estimate_obstacle_depth
+    from svs_torch.depth import labelled_quantile
+
+    generator = torch.Generator().manual_seed(3)
+    values = torch.rand(2, 50, generator=generator)
+    labels, slots = torch.ones(2, 50, dtype=torch.int64), torch.ones(2, 1, dtype=torch.int64)
+    for q in (0.5, 1.0):
+        plain = labelled_quantile(values, labels, slots, [q])
+        assert torch.equal(labelled_quantile(values, labels, slots, _negative_view(torch.tensor([q]))).values,
+                           plain.values)
+    assert not kernels.on_cpu(torch.float32, _negative_view(torch.ones(1)))
+    pair = resize_stereo_batch(load_middlebury_eval3(data_dir / "middlebury_eval3_Q" / "Teddy"), (320, 267))
+    viewed = dataclasses.replace(pair, **{name: _negative_view(getattr(pair, name))
+                                          for name in ("focal_px", "baseline_m", "doffs_px")})
+    expected, found = estimate_obstacle_depth(pair), estimate_obstacle_depth(viewed)
+    assert float(expected.depth.range.r_min_m[0]) > 1.0
+    assert torch.equal(found.depth.objects.depth_median_m, expected.depth.objects.depth_median_m)
+    assert torch.equal(found.status, expected.status)

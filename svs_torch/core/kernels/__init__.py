@@ -155,8 +155,12 @@ def available(name: str = "block_match") -> bool:
 
 
 def on_cpu(dtype: torch.dtype, *tensors: torch.Tensor) -> bool:
-    """Whether every tensor is a CPU tensor of ``dtype``: the kernels read raw memory of one element type."""
-    return all(t.dtype == dtype and t.device.type == "cpu" for t in tensors)
+    """Whether every tensor is a CPU tensor of ``dtype`` whose memory holds its values: the kernels read raw memory
+    of one element type. A negative view (``z.conj().imag``) holds the negated values, and ``.contiguous()`` keeps
+    it as it is where it is contiguous (one element): a (1,) baseline read as its negation ranged Teddy at 0 m, and
+    a quantile [0.5] as -0.5 read before the sorted members (an audit of hostile calls). Such tensors take the
+    torch path, which reads them right."""
+    return all(t.dtype == dtype and t.device.type == "cpu" and not t.is_neg() for t in tensors)
 
 
 def rows_of(tensor: torch.Tensor) -> tuple[int, int]:
