@@ -75,6 +75,9 @@ def check_shape(tensor: torch.Tensor, name: str, spec: Sequence[str | int]) -> d
 #: The floating-point dtypes the pipeline computes in. Half precision is refused: the integral image of a 64 x 64
 #: image sums past 2048, where float16 stops holding whole numbers, and CPU kernels such as cdist do not exist for it.
 FLOAT_DTYPES = (torch.float32, torch.float64)
+#: The integer dtypes the checks take as "int": torch.uint16, uint32 and uint64 have no comparison nor sort on the
+#: CPU ('"gt_cpu" not implemented for 'UInt64''), the quantized ones (qint8) no plain op at all.
+INT_DTYPES = (torch.uint8, torch.int8, torch.int16, torch.int32, torch.int64)
 #: The largest float32: a setting that becomes a float32 tensor's value is bounded by it (1e39 passed its check,
 #: then made every pair an ERROR row, "value cannot be converted to type float without overflow"; an audit of --set).
 FLOAT32_MAX = float(torch.finfo(torch.float32).max)
@@ -100,13 +103,20 @@ def check_dtype(tensor: torch.Tensor, name: str, kinds: str) -> None:
         raise InputError(f"{name}: expected {_a(kind)} {kind} tensor, got {type(tensor).__name__}")
     if tensor.is_meta:  # shapes without values: every check that reads a value (bool(), item()) failed deep in torch
         raise InputError(f"{name}: expected a tensor with values, got one on the meta device")
+    # A sparse (or mkldnn) tensor failed in the first op without such a kernel (a kernel wrapper's .contiguous():
+    # "unsupported memory format option Contiguous"), naming no argument (an audit of hostile calls).
+    if tensor.layout != torch.strided:
+        raise InputError(f"{name}: expected a dense tensor, got layout {tensor.layout} (call .to_dense())")
     dtype = tensor.dtype
     family = ("bool" if dtype == torch.bool else
               "float" if dtype in FLOAT_DTYPES else
               "half" if dtype.is_floating_point else
-              "int" if not dtype.is_complex else "complex")
+              "complex" if dtype.is_complex else
+              "int" if dtype in INT_DTYPES else "other")
     if family == "half" and "float" in allowed:
         raise InputError(f"{name}: expected a float32 or float64 tensor, got {dtype}")
+    if family == "other" and "int" in allowed:  # torch.uint64, torch.qint8: torch's comparisons refuse them
+        raise InputError(f"{name}: expected an int tensor (int8, int16, int32, int64 or uint8), got {dtype}")
     if family not in allowed:
         raise InputError(f"{name}: expected {_a(allowed[0])} {' or '.join(allowed)} tensor, got {dtype}")
 
@@ -126,9 +136,9 @@ def check_image(tensor: torch.Tensor, name: str, check_range: bool = True) -> di
     bindings = check_shape(tensor, name, ["B", 1, "H", "W"])
     if tensor.is_meta:  # shapes without values (a model traced on the meta device): nothing to range
         raise InputError(f"{name}: expected an image with values, got a tensor on the meta device")
-    check_dtype(tensor, name, "float")
     if tensor.layout != torch.strided:  # a sparse image: aminmax raised NotImplementedError from deep inside
         raise InputError(f"{name}: expected a dense image tensor, got layout {tensor.layout} (call .to_dense())")
+    check_dtype(tensor, name, "float")
     if check_range and tensor.numel() > 0:
         # One pass: aminmax propagates NaN, so a NaN anywhere shows in the extremes.
         lo, hi = (float(v) for v in torch.aminmax(tensor.detach()))

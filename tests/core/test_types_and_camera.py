@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import dataclasses
+import re
+import warnings
 
 import pytest
 import torch
@@ -142,6 +144,46 @@ def test_a_meta_device_tensor_is_named_by_every_stage(call, name):
     the first check that read a value ("Tensor.item() cannot be called on meta tensors", "Tensor on device meta is
     not on the expected device cpu!"), naming no argument; check_dtype now refuses it by name."""
     with pytest.raises(InputError, match=f"^{name}: expected a tensor with values, got one on the meta device$"):
+        call()
+
+
+def _sparse(*shape, dtype=torch.float32):
+    return torch.ones(*shape, dtype=dtype).to_sparse()
+
+
+def _quantized(*shape):
+    with warnings.catch_warnings():  # torch 2.13 deprecates quantized tensors; a caller may still hold one
+        warnings.simplefilter("ignore", UserWarning)
+        return torch.quantize_per_tensor(torch.ones(*shape), 1.0, 0, torch.qint8)
+
+
+_LABELS = torch.ones(2, 6, dtype=torch.int64)
+
+
+@pytest.mark.parametrize("call, message", [
+    (lambda: labelled_quantile(torch.rand(2, 6), _sparse(2, 6, dtype=torch.int64), _LABELS[:, :1], [0.5]),
+     "labels: expected a dense tensor, got layout torch.sparse_coo"),
+    (lambda: labelled_quantile(_sparse(2, 6), _LABELS, _LABELS[:, :1], [0.5]),
+     "values: expected a dense tensor, got layout torch.sparse_coo"),
+    (lambda: extract_surf_features(torch.rand(1, 1, 40, 40), mask=_sparse(1, 1, 40, 40, dtype=torch.bool)),
+     "mask: expected a dense tensor, got layout torch.sparse_coo"),
+    (lambda: match_sad(_sparse(1, 5, 64), torch.rand(1, 5, 64), torch.ones(1, 5, dtype=torch.bool),
+                       torch.ones(1, 5, dtype=torch.bool)), "desc_left: expected a dense tensor"),
+    (lambda: estimate_fundamental_ransac(torch.rand(1, 20, 2), torch.rand(1, 20, 2), torch.ones(1, 20, dtype=torch.bool),
+                                         pair_seeds=_quantized(1)),
+     "pair_seeds: expected an int tensor (int8, int16, int32, int64 or uint8), got torch.qint8"),
+    (lambda: labelled_quantile(torch.rand(2, 6), _LABELS.to(torch.uint64), _LABELS[:, :1], [0.5]),
+     "labels: expected an int tensor (int8, int16, int32, int64 or uint8), got torch.uint64"),
+    (lambda: StereoBatch(*[torch.rand(1, 1, 8, 8)] * 2, torch.ones(1), torch.ones(1), torch.zeros(1),
+                         torch.zeros(1, dtype=torch.bool), torch.tensor([[8, 8]], dtype=torch.uint16)),
+     "image_hw: expected an int tensor (int8, int16, int32, int64 or uint8), got torch.uint16"),
+])
+def test_sparse_quantized_and_wide_unsigned_tensors_are_named(call, message):
+    """Found by an audit of hostile calls into the stages: a sparse labels tensor reached the quantile kernel's
+    wrapper and failed in its .contiguous() ("unsupported memory format option Contiguous"), a sparse mask in
+    SURF's; a qint8 or uint16 / uint64 tensor passed as "int" and failed in torch ('"gt_cpu" not implemented for
+    'UInt64'', "load_scalar: invalid type"). check_dtype now names the argument."""
+    with pytest.raises(InputError, match=f"^{re.escape(message)}"):
         call()
 
 
