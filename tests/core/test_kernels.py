@@ -208,6 +208,22 @@ def test_strongest_maxima_kernel_ties_and_small_octaves():
         features_kernels.strongest_maxima(dets, supports, 0.5, 59)
 
 
+@pytest.mark.skipif(not kernels.available("strongest_maxima"), reason="no C compiler")
+def test_maxima_supports_of_any_bytes_keep_their_nonzero_points():
+    """A support viewed from bytes other than 0 / 1 (uint8 2 as bool) compares equal to all True, yet
+    strongest_maxima's C code anded each byte with the threshold's 1 and kept no maximum (all -inf, in silence);
+    local_maxima's reads it as a truth value. Both now answer as for the all-True support (an audit of hostile
+    calls)."""
+    det = torch.rand(2, 4, 12, 12, generator=torch.Generator().manual_seed(0))
+    ones = torch.ones(2, 2, 10, 10, dtype=torch.bool)
+    odd = torch.full((2, 2, 10, 10), 2, dtype=torch.uint8).view(torch.bool)
+    values, index = features_kernels.strongest_maxima([det], [ones], 0.0, 5)
+    assert torch.isfinite(values).all()
+    found = features_kernels.strongest_maxima([det], [odd], 0.0, 5)
+    assert torch.equal(found[0], values) and torch.equal(found[1], index)
+    assert torch.equal(features_kernels.local_maxima(det, odd, 0.0), features_kernels.local_maxima(det, ones, 0.0))
+
+
 @pytest.mark.skipif(not kernels.available("find_runs"), reason="no C compiler")
 @pytest.mark.parametrize("threads", [1, 3])
 @pytest.mark.parametrize("width", [1, 7, 8, 9, 67])

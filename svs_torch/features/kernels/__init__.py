@@ -11,7 +11,7 @@ import torch
 from ...core.checks import check_shape
 from ...core.errors import InputError
 from ...core.kernels import FLOAT, INT, POINTER, available, declare, load, on_cpu
-from ...core.kernels.checks import check_nonempty, check_rows
+from ...core.kernels.checks import canonical_bool, check_nonempty, check_rows
 
 __all__ = [
     "MAX_TABLE_VALUES", "available", "check_border", "hessian_octave", "load", "local_maxima", "padded_integral",
@@ -157,7 +157,9 @@ def strongest_maxima(dets: list[torch.Tensor], supports: list[torch.Tensor | Non
         _check_support(support, f"supports[{octave}]", b, inner)
         if not on_cpu(torch.bool, support):
             return None
-        det, support = det.contiguous(), support.contiguous()
+        # The C code ands each support byte with the threshold's 0 / 1: a mask viewed from other bytes (2) kept
+        # no maximum at all (an audit of hostile calls); nonzero is True, as torch reads a bool.
+        det, support = det.contiguous(), canonical_bool(support).contiguous()
         kept += [det, support]
         pointers.append((det.shape[1:], det.data_ptr(), support.data_ptr(),
                          0 if support.shape[0] == 1 else support[0].numel()))
