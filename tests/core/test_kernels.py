@@ -654,6 +654,20 @@ def test_lk_kernel_matches_are_independent_of_their_neighbours(generator):
             assert torch.equal(alone[0, 0], refined[b, n]) and torch.equal(alone_correlation[0, 0], correlation[b, n])
 
 
+@pytest.mark.skipif(not kernels.available("lk_refine"), reason="no C compiler")
+def test_lk_kernel_leaves_sides_past_float32_whole_numbers_to_torch():
+    """The kernel clamps each sample at the float32 (W - 1, H - 1): past 2^24 that rounds up to W, and a match at
+    the last column of a 2 x (2^25 + 4) pair read one float past the image (ASan: heap-buffer-overflow in
+    sample_patch; an audit of hostile calls). Such sizes now take the torch path (None); 2^24 still runs. The
+    images are expanded rows, so nothing that size is allocated unless the kernel runs."""
+    one = torch.ones(1, 1, dtype=torch.bool)
+    for width, runs in ((2**25 + 4, False), (2**24 + 1, False), (2**24, True)):
+        image = torch.rand(1, 1, 2, 1).expand(1, 1, 2, width) if not runs else torch.rand(1, 1, 1, width)
+        xy = torch.tensor([[[width - 1.0, 0.0]]])
+        found = geometry_kernels.lk_refine(image, image, xy, xy.clone(), torch.full((1, 1), 3.0), one, 2, 1.0)
+        assert (found is not None) == runs, width
+
+
 @pytest.mark.skipif(not kernels.available("sad_nearest"), reason="no C compiler")
 @pytest.mark.parametrize("mutual", [False, True])
 @pytest.mark.parametrize("band_px", [None, 4.0])

@@ -64,8 +64,10 @@ def lk_refine(left: torch.Tensor, right: torch.Tensor, left_xy: torch.Tensor, ri
     if not isinstance(iterations, int) or not 0 <= iterations <= MAX_LK_ITERATIONS:  # a C int: 2^64 + 1 ran as 1
         raise InputError(f"iterations: expected an int from 0 to {MAX_LK_ITERATIONS}, got {iterations!r}")
     check_number(max_shift_px, "max_shift_px", 0.0)
+    # The kernel indexes an image with 32-bit offsets, and clamps a sample at the float32 (W - 1, H - 1), which
+    # past 2^24 rounds up to W (a 2 x (2^25 + 4) pair read past the image's end, ASan: heap-buffer-overflow).
     if (not (on_cpu(torch.float32, *tensors) and on_cpu(torch.bool, active))
-            or h * w >= 2**31):  # the kernel indexes an image with 32-bit offsets
+            or h * w >= 2**31 or max(h, w) > 2**24):
         return None
     library = load("lk_refine")
     if library is None:
