@@ -143,7 +143,8 @@ def segment_learned(image: torch.Tensor, logits: torch.Tensor, config: Segmentat
 
     ``threshold`` holds the probability threshold and ``threshold_level`` it on the 0–255 scale; ``binary`` is
     the thresholded probability. Status as the Otsu stage's: ``UNIFORM_IMAGE`` for a one-level image (no
-    information), ``NO_FOREGROUND`` when nothing survives the opening. Not differentiable.
+    information), ``NO_FOREGROUND`` when nothing survives the opening. Not differentiable: the mask is hard, and
+    ``masked`` (the image times it) carries the image's gradient inside the kept mask only.
 
     Raises:
         InputError: naming the argument, for images or logits of another shape or kind, a ``config`` that is not a
@@ -178,7 +179,8 @@ def segment_stereo_learned(batch: StereoBatch, config: SegmentationConfig = Segm
     The network is ``net``, or loaded from ``config.segmenter`` (:func:`load_obstacle_net`). The right view is
     segmented as the left view of the mirrored pair (both images flipped and swapped: right columns stay at
     ``x − d``), one batch of 2B; ``left_logits`` ``(B, 1, H, W)`` (the left views' logits, already computed by
-    the caller, e.g. with gradients) leaves only the right views to the network. Not differentiable; see
+    the caller, e.g. with gradients) leaves only the right views to the network. Not differentiable but for
+    ``masked``, which carries the images' gradients inside the kept masks only; the network trains through
     :func:`soft_object_depths`.
     """
     check_instance(batch, "batch", StereoBatch)
@@ -242,8 +244,9 @@ def soft_object_depths(logits: torch.Tensor, segmentation: Segmentation, dispari
             them), so the result tends to the hard regions' mean disparity.
 
     Returns:
-        :class:`SoftObjectDepths`, differentiable w.r.t. ``logits`` and ``disparity_px`` (``nearest_m`` through
-        the nearest object only).
+        :class:`SoftObjectDepths`, differentiable w.r.t. ``logits``, ``disparity_px`` and the calibration
+        (``focal_px``, ``baseline_m``, ``doffs_px``: the depths, not the weights or mean disparities), ``nearest_m``
+        through the nearest object only.
     """
     dims = check_shape(logits, "logits", ["B", 1, "H", "W"])
     check_dtype(logits, "logits", "float")
@@ -283,7 +286,8 @@ def soft_nearest_depth(batch: StereoBatch, logits: torch.Tensor, segmentation: S
                        mask_temperature: float = 1.0, disparity_temperature: float = 0.003,
                        dense: DenseConfig = DenseConfig()) -> SoftObjectDepths:
     """The whole soft path on the left views of ``batch``: :func:`~svs_torch.depth.dense.soft_block_match` over
-    ``[0, num_disparities)`` then :func:`soft_object_depths`. Differentiable w.r.t. ``logits`` and both images;
+    ``[0, num_disparities)`` then :func:`soft_object_depths`. Differentiable w.r.t. ``logits``, both images and
+    the batch's calibration (its depths);
     as both temperatures ``→ 0`` it tends to the mean winner-takes-all disparity over each hard kept region."""
     check_instance(batch, "batch", StereoBatch)
     check_instance(segmentation, "segmentation", Segmentation)

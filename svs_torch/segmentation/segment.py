@@ -345,6 +345,9 @@ def segment_stereo(batch: StereoBatch, config: SegmentationConfig = Segmentation
     on its own ``image_hw`` pixels (:mod:`svs_torch.core.size_groups`): a padded pair's border never enters its
     threshold's histogram or a region.
 
+    Not differentiable but for ``masked`` (each view times its hard mask), which carries the image's gradient inside
+    the kept mask only; :mod:`svs_torch.segmentation.soft` is the differentiable variant.
+
     Returns:
         :class:`StereoSegmentation`; its pair ``status`` is the left image's where not OK, else the right's.
     """
@@ -359,7 +362,8 @@ def segment_stereo(batch: StereoBatch, config: SegmentationConfig = Segmentation
 
 def segment_stereo_otsu(batch: StereoBatch, config: SegmentationConfig) -> StereoSegmentation:
     """:func:`segment_stereo`'s Otsu branch on a batch whose pairs fill its tensors (one size group, as
-    :func:`svs_torch.segmentation.stereo.segment_same_size` gets). Not differentiable."""
+    :func:`svs_torch.segmentation.stereo.segment_same_size` gets). Not differentiable (``masked`` carries the
+    image's gradient inside the kept mask only)."""
     b = batch.batch_size
     both = segment_images(torch.cat([batch.left, batch.right], dim=0), config)
     left, right = _split(both, b)
