@@ -15,6 +15,7 @@ from .frames import MIN_IMAGE_STEP_S, WALKER_PITCH_DEG
 from svs_torch.cli.capture import check_heap_in_view
 from svs_torch.cli.common import MAX_SEED, finite_float, noise_levels, non_negative_float, non_negative_int, \
     positive_float, positive_int, seed_int
+from svs_torch.cli.guide import MIN_EMULATOR_FLOOR_M
 from svs_torch.cli.link_options import MIN_BAUD
 from svs_torch.core.camera import SVS_CAMERA, SVS_RESOLUTIONS, parse_size
 from svs_torch.data.rig_deviation import RigDeviation
@@ -63,8 +64,8 @@ def parse_args(argv: list[str] | None, description: str, link_bytes_per_s: float
                    help=f"seed of the left camera's noise, 0 to {MAX_SEED}; the right's is the next (default "
                         "%(default)s)")
     p.add_argument("--floor-height-m", type=positive_float, default=None, metavar="M",
-                   help="synthetic frames: the cameras M metres over a textured floor, as a walker wears them "
-                        "(default: no floor)")
+                   help="synthetic frames: the cameras M metres over a textured floor, as a walker wears them, at "
+                        "least 0.01 (default: no floor)")
     p.add_argument("--camera-pitch-deg", type=finite_float, default=WALKER_PITCH_DEG, metavar="DEG",
                    help="with --floor-height-m: the cameras pitched down DEG degrees, -30 to 60 (default %(default)s)")
     p.add_argument("--heap-ahead-m", type=positive_float, default=None, metavar="M",
@@ -168,6 +169,9 @@ def _check_floor_in_view(p: argparse.ArgumentParser, args: argparse.Namespace) -
     """``--floor-height-m`` low enough for the cameras, pitched ``--camera-pitch-deg``, to see the floor."""
     if args.floor_height_m is None:
         return
+    if args.floor_height_m < MIN_EMULATOR_FLOOR_M:  # (1e-300 killed the render thread: svs-depth guide's bound)
+        p.error(f"--floor-height-m: expected at least {MIN_EMULATOR_FLOOR_M:g} m (lower, the cameras lie on the "
+                f"floor), got {args.floor_height_m:g}")
     highest_m, pitch = _highest_floor_seen_m(args.camera_pitch_deg), f"--camera-pitch-deg {args.camera_pitch_deg:g}"
     if highest_m <= 0:
         p.error(f"--floor-height-m: cameras at {pitch} see no floor at any height before the wall {WALL_DEPTH_M:g} m "

@@ -108,6 +108,10 @@ CONFIRM_FRAMES_HELP = ("warn on the median of the last N pairs' distances, so th
 #: 20° down, see no floor before it at 320x240 (none of 76,800 pixels; at 2.9 m 2,240). 1e9 was taken and guide
 #: ran with no floor in view, unsaid.
 MAX_EMULATOR_FLOOR_M = 3.0
+#: The lowest ``--emulator-floor-m`` (and ``python -m hw.emulator --floor-height-m``): a lens 1 cm over the floor
+#: lies on it. 1e-300 was taken, the renderer's float32 disparities of the floor overflowed, its thread died with a
+#: traceback, and guide ranged the stand-in renderer's frames, which have no floor, unsaid (an audit).
+MIN_EMULATOR_FLOOR_M = 0.01
 
 
 def _confirm_frames(text: str) -> int:
@@ -119,11 +123,16 @@ def _confirm_frames(text: str) -> int:
 
 
 def _emulator_floor_m(text: str) -> float:
-    """argparse type of ``--emulator-floor-m``: metres over 0 and under :data:`MAX_EMULATOR_FLOOR_M`."""
+    """argparse type of ``--emulator-floor-m``: metres from :data:`MIN_EMULATOR_FLOOR_M` to under
+    :data:`MAX_EMULATOR_FLOOR_M`."""
     value = positive_float(text)
+    if value < MIN_EMULATOR_FLOOR_M:
+        raise argparse.ArgumentTypeError(f"expected metres from {MIN_EMULATOR_FLOOR_M:g} (lower, the cameras lie on "
+                                         f"the floor) to under {MAX_EMULATOR_FLOOR_M:g}, got {text!r}")
     if not value < MAX_EMULATOR_FLOOR_M:
-        raise argparse.ArgumentTypeError(f"expected metres over 0 and under {MAX_EMULATOR_FLOOR_M:g} (higher, the "
-                                         f"emulator's cameras see no floor before its wall 4 m ahead), got {text!r}")
+        raise argparse.ArgumentTypeError(f"expected metres from {MIN_EMULATOR_FLOOR_M:g} to under "
+                                         f"{MAX_EMULATOR_FLOOR_M:g} (higher, the emulator's cameras see no floor "
+                                         f"before its wall 4 m ahead), got {text!r}")
     return value
 
 
@@ -137,7 +146,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     add_emulator_frame_options(parser)
     parser.add_argument("--emulator-floor-m", type=_emulator_floor_m, metavar="M",
                         help="with --emulator: the cameras M metres over a textured floor, pitched down 20 degrees "
-                             "(hw.frames.WALKER_PITCH_DEG) as a walker wears them, under 3 (default: no floor)")
+                             "(hw.frames.WALKER_PITCH_DEG) as a walker wears them, 0.01 to under 3 (default: no "
+                             "floor)")
     parser.add_argument("--emulator-heap-m", type=positive_float, metavar="M",
                         help="with --emulator-floor-m: a heap of rocks on the floor M metres ahead, 0.9 m wide and "
                              "0.35 m high, which guide warns of (default: none)")

@@ -70,9 +70,14 @@ def test_baud_of_real_boards_is_taken():
     (["--confirm-frames", "22"], "argument --confirm-frames: expected a number of pairs from 1 to 21, got '22'"),
     (["--confirm-frames", "1000000000"], "expected a number of pairs from 1 to 21"),
     # 1e9: no floor in view, unsaid (none of its pixels seen from 3 m up at 320x240)
-    (["--emulator-floor-m", "3"], "argument --emulator-floor-m: expected metres over 0 and under 3 (higher, the "
+    (["--emulator-floor-m", "3"], "argument --emulator-floor-m: expected metres from 0.01 to under 3 (higher, the "
                                   "emulator's cameras see no floor before its wall 4 m ahead), got '3'"),
-    (["--emulator-floor-m", "1e9"], "argument --emulator-floor-m: expected metres over 0 and under 3"),
+    (["--emulator-floor-m", "1e9"], "argument --emulator-floor-m: expected metres from 0.01 to under 3"),
+    # 1e-300: the renderer's floor disparities overflowed float32, its thread died with a traceback, and guide ranged
+    # the stand-in's frames, which have no floor, unsaid
+    (["--emulator-floor-m", "1e-300"], "argument --emulator-floor-m: expected metres from 0.01 (lower, the cameras "
+                                       "lie on the floor) to under 3, got '1e-300'"),
+    (["--emulator-floor-m", "0.009"], "argument --emulator-floor-m: expected metres from 0.01"),
 ])
 def test_guide_values_past_their_meaning_are_refused(capsys, argv, message):
     assert message in _refused(capsys, ["guide", "--emulator", "--no-speech", "--count", "1", *argv])
@@ -83,6 +88,7 @@ def test_guide_values_in_range_are_taken():
 
     args = build_parser().parse_args(["guide", "--emulator", "--confirm-frames", "21", "--emulator-floor-m", "2.9"])
     assert (args.confirm_frames, args.emulator_floor_m) == (21, 2.9)
+    assert build_parser().parse_args(["guide", "--emulator", "--emulator-floor-m", "0.01"]).emulator_floor_m == 0.01
 
 
 def test_emulator_noise_sigma_is_bounded_as_svs_depths_emulator_noise(capsys):
@@ -102,6 +108,9 @@ def test_emulator_noise_sigma_is_bounded_as_svs_depths_emulator_noise(capsys):
                                   "size a board sends shows any floor before the wall 4 m ahead), got 1e+09"),
     (["--floor-height-m", "1.3", "--camera-pitch-deg", "-30"],
      "--floor-height-m: cameras at --camera-pitch-deg -30 see no floor at any height"),
+    # 1e-300: the render thread died (float32 disparities of the floor overflowed) and every frame was the stand-in's
+    (["--floor-height-m", "1e-300"], "--floor-height-m: expected at least 0.01 m (lower, the cameras lie on the "
+                                     "floor), got 1e-300"),
 ])
 def test_emulator_floor_out_of_view_is_refused(capsys, argv, message):
     """``python -m hw.emulator --floor-height-m`` above what its cameras see of the floor before the synthetic wall
