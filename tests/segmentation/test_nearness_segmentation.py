@@ -73,6 +73,10 @@ def test_keep_rules_keep_a_small_near_region_before_a_large_far_one():
     # The area held to the least area can be another count (the nearness segmenter's: pixels both cameras see).
     seen = torch.tensor([[0.0, 500.0, 30.0]])
     assert keep_regions(labels, regions, 2, "nearest_first", 31, nearness, seen)[0].tolist() == [[2, -1]]
+    # No candidate by that count (every region in the band the right camera does not see): the largest regions,
+    # but a region under the least area never beside one over it (an audit: guide on a floor 0.8 m below the camera
+    # kept a 32-pixel scrap at the image's foot beside an unseen region of 652 and said "Stop" of it).
+    assert keep_regions(labels, regions, 2, "nearest_first", 600, nearness, torch.zeros(1, 3))[0].tolist() == [[1, -1]]
 
 
 def test_a_small_region_under_the_least_area_is_kept_only_where_it_is_the_nearest():
