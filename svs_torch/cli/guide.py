@@ -15,7 +15,7 @@ from .common import (Terminated, add_retries_option, finite_float, non_negative_
 from .hangup import HungUp, hung_up_on_sighup
 from .link_options import add_emulator_frame_options, add_uart_options, emulator_record
 from .rig import add_calibration_option, calibration_from_args
-from .segment import add_floor_option
+from .segment import FLOOR_CAMERA_HEIGHTS_M, add_floor_option
 
 HELP = "live obstacle warnings from an SVS (or the built-in emulator)"
 
@@ -146,8 +146,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     add_emulator_frame_options(parser)
     parser.add_argument("--emulator-floor-m", type=_emulator_floor_m, metavar="M",
                         help="with --emulator: the cameras M metres over a textured floor, pitched down 20 degrees "
-                             "(hw.frames.WALKER_PITCH_DEG) as a walker wears them, 0.01 to under 3 (default: no "
-                             "floor)")
+                             "(hw.frames.WALKER_PITCH_DEG) as a walker wears them, 0.01 to under 3; guide's floor "
+                             f"rule finds a floor from {FLOOR_CAMERA_HEIGHTS_M[0]:g} m under the cameras, see --floor "
+                             "(default: no floor)")
     parser.add_argument("--emulator-heap-m", type=positive_float, metavar="M",
                         help="with --emulator-floor-m: a heap of rocks on the floor M metres ahead, 0.9 m wide and "
                              "0.35 m high, which guide warns of (default: none)")

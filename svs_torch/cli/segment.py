@@ -112,6 +112,12 @@ def refuse_unused_segmentation_options(args: argparse.Namespace, reason: str, fi
         raise InputError(f"{given[0]}: {reason}, which no segmentation option changes; drop {given[0]}{fix}")
 
 
+#: The camera heights over the floor the floor rule finds it at, metres (GroundPlaneConfig's min_camera_height_m and
+#: max_camera_height_m, said in --floor's help without importing torch): a camera 0.6 m over a floor heard the floor
+#: itself warned of, "Stop. Obstacle at 0.8 metres", and no help said why (an audit of the walker's guide).
+FLOOR_CAMERA_HEIGHTS_M = (0.8, 3.0)
+
+
 def add_floor_option(parser: argparse.ArgumentParser, default: str = "off",
                      why: str = "a pile of rocks or cloth can read as a floor: experiments/walker_floor.md") -> None:
     """``--floor on|off``: whether the nearness segmenter leaves the floor out (:func:`with_floor`). ``default``: the
@@ -120,8 +126,10 @@ def add_floor_option(parser: argparse.ArgumentParser, default: str = "off",
     are named only by the commands that take ``--set``, not here: none of this option's commands does."""
     parser.add_argument("--floor", choices=("on", "off"), default=None if default == "off" else default,
                         help="'on': the floor (the road) that the nearness segmenter finds as a plane in the pair's "
-                             "disparity is not an obstacle, as for a walker; 'off': it is kept like any near "
-                             f"surface (default: {default}, {why})")
+                             "disparity is not an obstacle, as for a walker whose cameras are "
+                             f"{FLOOR_CAMERA_HEIGHTS_M[0]:g} to {FLOOR_CAMERA_HEIGHTS_M[1]:g} m over it (a floor "
+                             "nearer the cameras is kept, and warned of, as any near surface); 'off': it is kept like "
+                             f"any near surface (default: {default}, {why})")
 
 
 def with_floor(config, choice: str | None):

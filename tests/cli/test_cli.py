@@ -161,6 +161,27 @@ def test_every_option_a_commands_help_names_is_one_it_takes():
         assert named - taken <= OTHER_COMMANDS_OPTIONS.get(name, set()), (name, sorted(named - taken))
 
 
+def test_floor_help_says_the_camera_heights_the_floor_rule_finds_a_floor_at():
+    """An audit of the walker's guide: cameras 0.6 m over a floor heard the floor warned of ("Stop. Obstacle at 0.8
+    metres"), the floor rule finding floors from 0.8 m only, which no help said."""
+    from svs_torch.cli.segment import FLOOR_CAMERA_HEIGHTS_M
+    from svs_torch.segmentation.ground_plane import GroundPlaneConfig
+
+    assert FLOOR_CAMERA_HEIGHTS_M == (GroundPlaneConfig.min_camera_height_m, GroundPlaneConfig.max_camera_height_m)
+    guide = " ".join(_help_of("guide").split())
+    assert "cameras are 0.8 to 3 m over it" in guide and "finds a floor from 0.8 m under the cameras" in guide
+    assert "cameras are 0.8 to 3 m over it" in " ".join(_help_of("estimate").split())
+
+
+def _help_of(command: str) -> str:
+    import argparse
+
+    from svs_torch.cli import build_parser
+
+    parsers = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction)).choices
+    return parsers[command].format_help()
+
+
 def test_segment_json_equals_opencv(data_dir, capsys):
     left, right = (str(data_dir / p) for p in TEDDY)
     code, out, err = run_cli(capsys, "segment", left, right, "--json", "--preset", "paper", "--kernel-size", "3",
