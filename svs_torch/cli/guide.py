@@ -73,9 +73,11 @@ Stop with Ctrl-C.
 SECOND_PASSES_HELP = ("'on': a pair whose first pass measured too little of its obstacles is measured again on a "
                       "coarser grid, and one left unfinished whose cameras' exposures differ again with them "
                       "matched where that brings their matched features together; 'off': never, so no frame "
-                      "waits for a second run (the shared real pairs as digit 4 frames on a 2-core machine: slowest "
-                      "about 40 -> 19 ms; digit 8: 98 -> 35 ms) but noisy frames are ranged worse (held-out digit 4 "
-                      "frames: 98.0 -> 95.3 %% per object): experiments/guide_second_passes.md (default: on)")
+                      "waits for a second run (the shared real pairs as digit 4 frames on a 2-core AMD machine: "
+                      "slowest 35.8 -> 18.4 ms; at digit 8 one frame of 45 took 98.0 ms, 46.0 without the exposure "
+                      "retry) but noisy frames are ranged worse (held-out digit 4 frames: 97.95 -> 95.34 %% per "
+                      "object): experiments/guide_second_passes.md, 'The map at the matched points' and 'Measured "
+                      "again' (default: on)")
 
 #: ``--json``: what its lines hold.
 JSON_HELP = ("a JSON line per pair ranged on stdout for another program: estimate --json's fields (with the "

@@ -1147,6 +1147,20 @@ def test_guide_record_says_the_jpeg_quality_as_capture_does(capsys, tmp_path):
     assert [json.loads(line)["quality"] for line in (record / "index.jsonl").read_text().splitlines()] == [6]
 
 
+def test_second_passes_help_quotes_its_record():
+    """guide --second-passes' help quoted "slowest about 40 -> 19 ms" and "98.0 -> 95.3 %", figures its record
+    (experiments/guide_second_passes.md) did not hold (the README audit): each decimal figure it quotes is there."""
+    import re
+    from pathlib import Path
+
+    from svs_torch.cli.guide import SECOND_PASSES_HELP
+
+    record = (Path(__file__).parents[2] / "experiments" / "guide_second_passes.md").read_text()
+    figures = re.findall(r"(?<![\d.])\d+\.\d+(?!\d)", SECOND_PASSES_HELP)
+    assert len(figures) >= 5
+    assert [f for f in figures if not re.search(rf"(?<![\d.]){re.escape(f)}(?!\d)", record)] == []
+
+
 def test_guide_record_with_second_passes_off_is_ranged_again_without_them(capsys, tmp_path):
     """``guide --second-passes off --record DIR``: the replay command it prints says ``--second-passes off`` too, and
     ranges the pairs as guide did. Without it (an audit), estimate measured the noisiest frames again on a coarser
