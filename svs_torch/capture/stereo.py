@@ -124,6 +124,17 @@ class SVSStereoCamera:
         self.versions[link.name] = link.identify()
         link.configure(self._size_code, quality, flip)
 
+    @property
+    def roles_swapped(self) -> bool | None:
+        """Whether the boards answered ``V`` in the wrong roles, the left not the stereo master or the right not the
+        slave (the URLs likely given the other way round); None where a board's build names no role. capture marks
+        each pair so (``cameras_swapped`` in its index) and guide says it aloud (it warned once as it started, then
+        saved every pair unmarked: an audit of a rig set up with the emulator's ports the other way round)."""
+        roles = {name: self.versions[name].role for name in STEREO_ROLES}
+        if not set(roles.values()) <= set(STEREO_ROLES.values()):
+            return None
+        return roles != STEREO_ROLES
+
     def _check_roles(self, strict: bool) -> None:
         roles = {name: self.versions[name].role for name in STEREO_ROLES}
         if roles == STEREO_ROLES:

@@ -18,7 +18,7 @@ Output, in ``--out-dir`` (alias ``--out``):
   :func:`~svs_torch.cli.link_options.emulator_record`; null from boards; an older index has no such key),
   ``cameras_swapped`` (true: the left board answered ``V`` as other than the stereo master or the right as other
   than the slave, the URLs likely the other way round; null: a build that names no role;
-  :func:`~svs_torch.cli.capture_checks.cameras_swapped`; an older index has no such key) and
+  :attr:`~svs_torch.capture.stereo.SVSStereoCamera.roles_swapped`; an older index has no such key) and
   ``rig_calibration`` (``"calibration.json"`` with ``--calibration``, else null);
 * ``calibration.json`` with ``--calibration``: a copy of the rig's calibration file (the frames stay as received;
   ``estimate --pairs OUT/index.jsonl --calibration OUT/calibration.json`` rectifies them). At the end capture prints

@@ -8,21 +8,7 @@ from __future__ import annotations
 
 from types import SimpleNamespace
 
-__all__ = ["PairChecks", "cameras_swapped"]
-
-
-def cameras_swapped(camera) -> bool | None:
-    """Whether the boards of ``camera`` (a :class:`~svs_torch.capture.stereo.SVSStereoCamera`) answered ``V`` in the
-    wrong roles, the left not the stereo master or the right not the slave (guide's ``cameras_swapped``); None where
-    a board's build names no role. Why: given the URLs the other way round, capture warned once as it started and
-    then saved every pair unmarked, each left image the right camera's view, and ``estimate`` of them could only ask
-    "are LEFT and RIGHT swapped?" (an audit of a rig set up with the emulator's ports given the other way round)."""
-    from ..capture.stereo import STEREO_ROLES
-
-    roles = {name: camera.versions[name].role for name in STEREO_ROLES}
-    if not set(roles.values()) <= set(STEREO_ROLES.values()):
-        return None
-    return roles != STEREO_ROLES
+__all__ = ["PairChecks"]
 
 
 class PairChecks:
@@ -31,7 +17,8 @@ class PairChecks:
     after pair without a word), and pairs in which one camera sent its last frame again while the other's changed
     (:class:`~svs_torch.capture.frozen.FrozenCameraWatch`: a stalled board's pairs were saved without a word, an old
     view beside a new one in a data set), and pairs whose two frames are one image (guide's identical_views, warned
-    of only); and the boards' roles (:func:`cameras_swapped`, :attr:`swapped`). All are kept: capture records what
+    of only); and the boards' roles (:attr:`swapped`, the camera's
+    :attr:`~svs_torch.capture.stereo.SVSStereoCamera.roles_swapped`). All are kept: capture records what
     the boards sent, and the index says which of the first two they are, and whether the roles were swapped."""
 
     def __init__(self, camera) -> None:
@@ -39,7 +26,7 @@ class PairChecks:
 
         self.max_frame_gap_s, self.watch = camera.max_frame_gap_s, FrozenCameraWatch()
         self.apart, self.frozen, self.one_image = 0, {"left": 0, "right": 0, "both": 0}, 0
-        self.swapped = cameras_swapped(camera)  # the index's cameras_swapped of every pair
+        self.swapped = camera.roles_swapped  # the index's cameras_swapped of every pair
         self.roles = {name: version.role for name, version in camera.versions.items()}
 
     def frozen_camera(self, pair) -> str | None:

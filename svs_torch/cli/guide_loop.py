@@ -34,7 +34,6 @@ from ..capture.pattern_notice import PatternNotice
 from ..depth.depth_types import ObstacleSide
 from ..pipeline import PipelineStatus
 from .capture import open_stereo_camera
-from .capture_checks import cameras_swapped
 from .guide import GUIDE_STOPPED  # (said there, before this module's imports are done)
 from .guide_floor import DISTANCE_ALONG, FLOOR_MEMORY_S, FloorMemory
 from .guide_log import GuideLog
@@ -140,7 +139,7 @@ class GuideSession:
         master; the driver's warning is printed too. Boards of a build that names no role are not said."""
         versions = getattr(camera, "versions", None)  # (a camera of another kind has no boards' version lines)
         # Each recorded pair is marked as capture marks its index (--record's pairs were unmarked: an audit)
-        self.log.cameras_swapped = cameras_swapped(camera) if versions else None
+        self.log.cameras_swapped = camera.roles_swapped if versions else None
         if self.roles_said or not self.log.cameras_swapped:
             return
         self.roles_said = True
