@@ -74,7 +74,7 @@ class RunningSummary:
         self.nominal = {key: _ExactSum() for key in ACCURACIES}
         self.nominal_names: list[str] = []
         self.unscored = 0
-        self.unscored_first: list[str] = []  # the first UNSCORED_NAMES names, in order
+        self.unscored_first: list[str] = []  # the UNSCORED_NAMES names first in sorted order, as summarize's
         self.means = {key: _ExactSum() for key in MEANS}
         self.ran, self.pipeline_s = 0, 0
         self.statuses: Counter[str] = Counter()
