@@ -221,10 +221,10 @@ def _no_truth_line(summary: dict, nominal: int) -> list[str]:
     ranged pairs were not scored, where others were (a scene whose truth had gone missing read as an OK row)."""
     unscored = summary.get("unscored") or {"count": 0, "names": []}
     if (summary["scored"] or nominal) and unscored["count"]:
-        names, count = unscored["names"], unscored["count"]
-        shown = ", ".join(names[:5]) + (f" and {count - 5} more" if count > 5 else "")
+        count = unscored["count"]
         return [f"{count} ranged pair{'' if count == 1 else 's'} not scored (no ground truth, or none where "
-                f"{'it was' if count == 1 else 'they were'} ranged; not in the means): {shown}"]
+                f"{'it was' if count == 1 else 'they were'} ranged; not in the means): "
+                f"{_first_named(unscored['names'], count)}"]
     if summary["scored"] or nominal or summary["pairs"] <= summary["failed"]:
         return []
     return ["none of the ranged pairs has ground truth (listed file pairs and captured frames carry none; a scene "
@@ -261,8 +261,14 @@ def disparity_export(args: argparse.Namespace, config, sources=()):
     return export
 
 
-#: The most repeated pairs the line that says so names: a list of 400 scenes given twice was a 7 kB line of names.
-REPEATS_NAMED = 5
+#: The most names a line of eval's lists (the pairs listed twice, the pairs not scored): a list of 400 scenes given
+#: twice was a 7 kB line of names.
+NAMES_SHOWN = 5
+
+
+def _first_named(names: list[str], count: int) -> str:
+    """The first :data:`NAMES_SHOWN` of ``names`` and how many more of the ``count`` there are."""
+    return ", ".join(names[:NAMES_SHOWN]) + (f" and {count - NAMES_SHOWN} more" if count > NAMES_SHOWN else "")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -290,10 +296,8 @@ def run(args: argparse.Namespace) -> int:
     config = replace(calibrated, rectify=config.rectify) if "rectify" in overrides else calibrated
     if repeated:  # once each, as a sweep and a results store count them: a repeat would weigh twice in the means
         names = list(dict.fromkeys(source.name for source in repeated))  # the first few (a list given twice: 400)
-        shown = ", ".join(names[:REPEATS_NAMED]) + (f" and {len(names) - REPEATS_NAMED} more" if len(names) >
-                                                    REPEATS_NAMED else "")
-        print(f"eval: {len(names)} pair{'s' * (len(names) != 1)} listed more than once, evaluated once: {shown}",
-              file=sys.stderr)
+        print(f"eval: {len(names)} pair{'s' * (len(names) != 1)} listed more than once, evaluated once: "
+              f"{_first_named(names, len(names))}", file=sys.stderr)
     check_no_option_calibration_in_store(args, sources)
     export = disparity_export(args, config, sources)  # its folder made once the arguments are known to be good
     store, run_id, sweep_config = store_beside_export(export, args, preset, overrides, size_wh, sources)
