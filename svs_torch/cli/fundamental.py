@@ -89,16 +89,19 @@ def homography_share(inliers: list[list[float]], threshold_px: float) -> float |
     return None if fit is None else fit[0]
 
 
-def homography_fit(inliers: list[list[float]], threshold_px: float) -> tuple[float, list[float]] | None:
+def homography_fit(inliers: list[list[float]], threshold_px: float, max_iterations: int = 2000
+                   ) -> tuple[float, list[float]] | None:
     """:func:`homography_share` and each row's distance (pixels) from where that homography maps its left point in
-    the right view; None under 8 inliers or where OpenCV fits none."""
+    the right view; None under 8 inliers or where OpenCV fits none. ``max_iterations``: OpenCV's RANSAC bound (its
+    default 2000), which a caller asking only whether a large share fits may lower."""
     if len(inliers) < 8:
         return None
     import cv2
     import numpy as np
 
     points = np.asarray(inliers, dtype=np.float64)
-    homography, mask = cv2.findHomography(points[:, :2], points[:, 2:], cv2.RANSAC, threshold_px)
+    homography, mask = cv2.findHomography(points[:, :2], points[:, 2:], cv2.RANSAC, threshold_px,
+                                              maxIters=max_iterations)
     if mask is None:
         return None
     mapped = cv2.perspectiveTransform(points[None, :, :2], homography)[0]
