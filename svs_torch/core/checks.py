@@ -24,6 +24,7 @@ __all__ = [
     "check_image",
     "check_instance",
     "check_same_shape",
+    "all_finite",
     "check_finite",
     "check_finite_where",
     "check_flag",
@@ -184,6 +185,20 @@ def check_same_shape(a: torch.Tensor, name_a: str, b: torch.Tensor, name_b: str)
                          f"got {_format_spec(tuple(b.shape))}")
 
 
+def all_finite(tensor: torch.Tensor) -> bool:
+    """Whether every value of ``tensor`` is finite (no NaN, no ±inf), in one pass without a temporary: a real float
+    tensor's extremes by ``aminmax``, which propagates NaN (an infinity is an extreme). Why: ``isfinite(x).all()``
+    writes a bool tensor and reads it again, 1.65 ms for 8 images of 320 x 240 at one thread against 0.13 ms, and
+    the pipeline's own checks of its images and descriptors took 4 % of ``estimate --pairs``' time."""
+    values = tensor.detach()
+    if values.is_complex() or values.numel() == 0 or values.layout != torch.strided:
+        return bool(torch.isfinite(values).all())
+    if not values.is_floating_point():  # bool and integers are finite
+        return True
+    low, high = torch.aminmax(values)
+    return bool(torch.isfinite(low) & torch.isfinite(high))
+
+
 def check_finite(tensor: torch.Tensor, name: str, positive: bool = False) -> None:
     """Check that every value is finite (no NaN, no ±inf) and, with ``positive``, greater than zero.
 
@@ -191,6 +206,8 @@ def check_finite(tensor: torch.Tensor, name: str, positive: bool = False) -> Non
     ``focal_px: expected finite positive values, got inf``.
     """
     values = tensor.detach()
+    if not positive and all_finite(values):
+        return
     bad = ~torch.isfinite(values)
     if positive:
         bad = bad | ~(values > 0)
@@ -210,6 +227,8 @@ def check_finite_where(tensor: torch.Tensor, name: str, where: torch.Tensor, whe
     """Check that ``tensor`` ``(B, ...)`` is finite wherever the bool ``where`` holds, naming the pairs that are
     not. A ground truth of inf or NaN marked known (a PFM's "unknown" left valid) was taken, then failed a whole
     batch's scoring, naming an argument its caller never passed."""
+    if all_finite(tensor):
+        return
     bad = (~torch.isfinite(tensor.detach()) & where).flatten(1).any(1)
     if bool(bad.any()):
         raise InputError(f"{name}: expected finite values where {where_name} holds, got NaN or inf for pair(s) "

@@ -24,7 +24,7 @@ import math
 
 import torch
 
-from ..core.checks import InputError, check_dtype, check_image, check_instance, check_shape
+from ..core.checks import InputError, all_finite, check_dtype, check_image, check_instance, check_shape
 from ..core.compiling import maybe_compiled
 from ..core.kernels.checks import check_nonempty
 from ..core.types import Keypoints
@@ -52,7 +52,7 @@ def _check_keypoints(image: torch.Tensor, keypoints: Keypoints) -> None:
     check_nonempty(image, "image")
     # Any float range is taken (masked or filtered images), but not NaN or inf: surf_orientation cast a NaN angle
     # to an index and failed in scatter_add, naming nothing, and describe_surf gave all-zero descriptors.
-    if not bool(torch.isfinite(image.detach()).all()):
+    if not all_finite(image):
         raise InputError("image: expected finite values (NaN or inf found)")
     # A NaN position has no pixel to sample (the kernel would cast it to an index, the torch path give NaN).
     if bool((keypoints.xy.detach().isnan().any(-1) & keypoints.valid).any()):

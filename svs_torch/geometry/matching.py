@@ -16,7 +16,7 @@ import numbers
 
 import torch
 
-from ..core.checks import InputError, check_dtype, check_flag, check_shape
+from ..core.checks import InputError, all_finite, check_dtype, check_flag, check_shape
 from ..core.types import Matches
 from . import kernels
 from .lk_refinement import MatchRefinementConfig, refine_matched_points, refine_matches_lk
@@ -61,7 +61,7 @@ def _check_match_args(desc_left: torch.Tensor, desc_right: torch.Tensor, valid_l
     # A NaN distance is the least to argmin (the torch path's mutual check) and no distance to the kernel: the two
     # paths matched differently. Padding may hold anything; only valid rows are read.
     for name, desc, valid in (("desc_left", desc_left, valid_left), ("desc_right", desc_right, valid_right)):
-        if not bool(desc.detach().isfinite().all()) and not bool(
+        if not all_finite(desc) and not bool(
                 torch.where(valid.unsqueeze(-1), desc.detach(), 0.0).isfinite().all()):
             raise InputError(f"{name}: expected finite descriptors in valid rows (NaN or inf found)")
     return dims

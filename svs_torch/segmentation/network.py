@@ -13,7 +13,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from ..core.checks import InputError, check_image, check_instance, check_stereo_views
+from ..core.checks import InputError, all_finite, check_image, check_instance, check_stereo_views
 from ..depth.soft_dense import soft_block_match
 from .ground_plane import GroundPlaneConfig
 from .threshold import gray_histogram, gray_levels, otsu_threshold_level
@@ -178,6 +178,8 @@ def check_finite_logits(logits: torch.Tensor, name: str) -> None:
     """Obstacle logits ``(B, ...)`` with a NaN or an infinity are refused, naming the pairs: thresholded, a NaN is
     "not an obstacle", and a diverged network (or a caller's broken ``left_logits``) would tell a walker the way is
     clear. ``name``: the argument they came from."""
+    if all_finite(logits):
+        return
     bad = ~torch.isfinite(logits.detach()).flatten(1).all(1)
     if bool(bad.any()):
         raise InputError(f"{name}: expected finite obstacle logits, got NaN or inf for pair(s) "

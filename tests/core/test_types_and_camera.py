@@ -11,7 +11,7 @@ import torch
 
 from svs_torch import SVS_CAMERA, InputError, StereoBatch, SVSCamera
 from svs_torch.core.camera import parse_size
-from svs_torch.core.checks import check_dtype, check_instance, check_shape
+from svs_torch.core.checks import all_finite, check_dtype, check_finite, check_finite_where, check_instance, check_shape
 from svs_torch.depth import ObjectDepths, estimate_range, labelled_quantile, masked_quantile, point_depths
 from svs_torch.features import extract_surf_features
 from svs_torch.geometry.matching import match_sad
@@ -57,6 +57,41 @@ def test_check_shape_binds_letters_and_names_the_argument():
 
 def make_batch(b=3, h=4, w=5, **kwargs) -> StereoBatch:
     return StereoBatch.from_images(torch.rand(b, 1, h, w), torch.rand(b, 1, h, w), 276.0, 0.1075, **kwargs)
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16, torch.float32, torch.float64, torch.complex64])
+def test_all_finite_agrees_with_isfinite_all_for_every_kind_of_bad_value(dtype):
+    """all_finite (one aminmax pass; found profiling estimate --pairs, where isfinite(x).all() of the images and
+    descriptors took 4 % of the time) says what isfinite(x).all() says: NaN, +inf and -inf anywhere, alone or
+    together, in a strided view or a tensor needing gradients."""
+    base = torch.rand(3, 1, 7, 9).to(dtype)
+    for value in (float("nan"), float("inf"), -float("inf")):
+        for where in ((0, 0, 0, 0), (2, 0, 6, 8), (1, 0, 3, 4)):
+            bad = base.clone()
+            bad[where] = value
+            assert all_finite(bad) is bool(torch.isfinite(bad).all()) is False
+            assert all_finite(bad.transpose(-1, -2)) is False and all_finite(bad[:, :, ::2]) is bool(
+                torch.isfinite(bad[:, :, ::2]).all())
+    both = base.clone()
+    both[0, 0, 0, 0], both[1, 0, 1, 1] = float("inf"), -float("inf")
+    assert all_finite(both) is False and all_finite(base) is True
+    if dtype.is_floating_point:
+        assert all_finite(base.clone().requires_grad_()) is True
+    assert all_finite(torch.empty(0, 3, dtype=dtype)) is True
+
+
+def test_all_finite_takes_integers_and_bools_and_the_checks_still_name_the_bad_values():
+    assert all_finite(torch.tensor([True, False])) and all_finite(torch.arange(5)) and all_finite(torch.tensor(3.0))
+    assert not all_finite(torch.tensor(float("nan")))
+    with pytest.raises(InputError, match="focal_px: expected finite values, got inf"):
+        check_finite(torch.tensor([1.0, float("inf")]), "focal_px")
+    check_finite(torch.tensor([1.0, 2.0]), "focal_px")
+    with pytest.raises(InputError, match="expected finite positive values, got 0"):
+        check_finite(torch.tensor([1.0, 0.0]), "focal_px", positive=True)
+    truth = torch.tensor([[1.0, float("nan")], [2.0, 3.0]])
+    check_finite_where(truth, "depth", torch.tensor([[True, False], [True, True]]), "valid")
+    with pytest.raises(InputError, match=r"pair\(s\) \[0\] of 2"):
+        check_finite_where(truth, "depth", torch.ones(2, 2, dtype=torch.bool), "valid")
 
 
 def test_stereo_batch_from_images_broadcasts_calibration():
