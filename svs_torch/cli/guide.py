@@ -25,13 +25,13 @@ obstacle's nearest visible surface (the 10th percentile of its distances) is wit
 1-2 m, the range the system was designed for), measured ahead along the floor where the floor was found (in the
 pair, or in the last 2 s: a camera pitched down sees what lies on the floor 0.2-0.4 m farther along its axis than
 it stands), else along a level floor under the camera as worn (--camera-pitch-deg) or along its axis: a spoken
-message, with the obstacle's side where it is not straight ahead ("Obstacle on the left, 1.5 metres"), when
-espeak-ng is installed, always a text line, rate-limited so it does not chatter (a message repeats after
---repeat-s seconds unless the distance class turns more urgent than the one last said, a new obstacle follows
-a clear way of a second, or the nearest obstacle is now on another side and --nearer-elsewhere-m nearer). Each
-pair's distance is confirmed by the pairs before it: the band is judged on the median of the last
---confirm-frames, so one noisy frame ranged wrong is not said. A status line shows frames per second, that
-distance and the nearest obstacle's side. The floor (the road) ahead, which a walker's camera sees
+message, with the side of the part of the obstacle that distance was measured on where it is not straight ahead
+("Obstacle on the left, 1.5 metres"), when espeak-ng is installed, always a text line, rate-limited so it does not
+chatter (a message repeats after --repeat-s seconds unless the distance class turns more urgent than the one last
+said, a new obstacle follows a clear way of a second, or the nearest obstacle is now on another side and
+--nearer-elsewhere-m nearer). Each pair's distance is confirmed by the pairs before it: the band is judged on the
+median of the last --confirm-frames, so one noisy frame ranged wrong is not said. A status line shows frames per
+second, that distance and the nearest obstacle's side. The floor (the road) ahead, which a walker's camera sees
 as its nearest surface, is not an obstacle (--floor). The frames are a camera's (JPEG with sensor noise), so the
 obstacles' disparity map is matched with its wider noise window at once, as estimate --camera-frames does.
 

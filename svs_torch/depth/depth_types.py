@@ -187,7 +187,9 @@ class ObjectDepths:
             ``PipelineResult.dropped_objects``).
         area_px: int64 pixel count of the region in the label image.
         centroid_x_px: mean column of the region (pixel centres); 0 where the area is 0.
-        side: :class:`ObstacleSide` of the centroid (thirds of the pair's width), NONE where the area is 0.
+        side: :class:`ObstacleSide` of the centroid (thirds of the pair's width), NONE where the area is 0; under the
+            dense rule, of the part its distances were measured on where that is not the whole region
+            (:mod:`svs_torch.pipeline.near_side`).
         num_inliers: int64, valid depths whose left point lies on the region.
         depth_median_m, depth_low_m, depth_high_m: median and ``object_percentiles`` of those depths (under the
             default dense rule: of the region's dense-map depths, its invalid pixels filled from their rows,

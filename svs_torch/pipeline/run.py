@@ -32,6 +32,7 @@ from .config import PipelineConfig, PipelineResult
 from .exposure import match_exposure
 from .exposure_retry import retry_with_exposure
 from .features_retry import features_smoothed, retry_with_smoothed_features
+from .near_side import near_part_sides
 from .near_surface import measure_near_surfaces
 from .ranging import (_dense_depth_with_retry, _rectifying_homographies, _smoothed, coarse_config,
                       drop_unmeasured_objects, surface_pixels_of)
@@ -226,7 +227,8 @@ def _dense_rule(batch: StereoBatch, seg: StereoSegmentation, depth: DepthResult,
                 points_left: torch.Tensor, inliers: torch.Tensor, rectified: torch.Tensor, H_left: torch.Tensor,
                 H_right: torch.Tensor, object_labels: torch.Tensor, config: PipelineConfig) -> tuple:
     """The dense range rule's stages after the sparse one: the dense depth with its second passes, the kept regions
-    it could not measure dropped, and the two-surface objects measured over their near surface. Returns the
+    it could not measure dropped, the two-surface objects measured over their near surface, and each side said of
+    the part measured (:mod:`~svs_torch.pipeline.near_side`). Returns the
     segmentation, depth and object labels after them, then the dense map and the verified, agreeing, measured,
     smoothed, coarse and near-surface flags and the dropped slots' labels (:class:`PipelineResult`'s fields of
     those names)."""
@@ -240,6 +242,9 @@ def _dense_rule(batch: StereoBatch, seg: StereoSegmentation, depth: DepthResult,
     if config.measure_near_surface:
         depth, object_labels, near = measure_near_surfaces(depth, dense, object_labels, rectified, H_left, inliers,
                                                            batch.focal_px, batch.baseline_m, batch.doffs_px, config)
+    # The side said with a distance is that of the part it was measured on (a region over two touching boxes).
+    depth = near_part_sides(depth, dense, object_labels, rectified, H_left, batch.image_hw, batch.focal_px,
+                            batch.baseline_m, batch.doffs_px, near)
     return seg, depth, object_labels, dense, verified, agreeing, measured, smoothed, coarse, dropped, near
 
 

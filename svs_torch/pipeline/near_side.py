@@ -1,0 +1,113 @@
+"""The side said with an obstacle's distance is the side of the part that distance was measured on.
+
+``guide`` warns of the nearest obstacle's nearest visible surface (its low depth percentile,
+``NearestObstacle.surface_m``) and says its side (:class:`~svs_torch.depth.ObstacleSide`: the third of the width its
+region's centroid falls in, or the centre for a region across the middle column). Where the nearness segmenter joins
+two touching obstacles at different depths into one kept region, that centroid is the pair's: a box at 0.88 m in the
+right third, joined to a box at 1.6 m over the middle, was said "Obstacle ahead" at 0.88 m, the right-hand box's
+distance (a known fault of guide's, rendered in ``tests/pipeline/test_near_side.py``). A walker needs the side
+of the part that distance belongs to.
+
+So where an object's measured dense depths lie on two surfaces apart, its side is that of its near part, by the same
+rule: at least :data:`MIN_FAR_SHARE` of its measured pixels at least :data:`FAR_PART_RATIO` times as far as its low
+percentile, at most :data:`MAX_BETWEEN_SHARE` between that and :data:`NEAR_PART_RATIO` times it, and the near part
+the pixels within that. An object ranged over its near surface (:mod:`svs_torch.pipeline.near_surface`) takes the
+side of the pixels it was measured over. Elsewhere the side stays its region's: one surface (a box facing the
+cameras: every measured pixel in the near part), or depths that change gradually across a turned front (a box turned
+40° about its vertical axis: 31 % of its measured pixels between, 30 % far; the joined boxes above: 43 % near, none
+between, 57 % far; rendered 320×240 scenes of :func:`~svs_torch.data.synthetic.render_obstacle_scenes`). Sides are
+taken in the dense map's pixels (a rectified pair's, by ``H_left``). Not differentiable (a side is a decision).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import torch
+
+from ..depth.dense_config import DenseDisparity
+from ..depth.depth_types import DepthResult, ObstacleSide
+from ..depth.sparse import slot_labels
+from .near_surface import _in_map_pixels
+
+__all__ = []
+
+#: The near part: measured pixels at most this many times as far as the object's low depth percentile.
+NEAR_PART_RATIO = 1.1
+#: The far part: measured pixels at least this many times as far as it (a surface at 0.88 m and one past 1.1 m).
+FAR_PART_RATIO = 1.25
+#: The far part holds at least this share of the object's measured pixels ...
+MIN_FAR_SHARE = 0.25
+#: ... and at most this share lies between the two (a turned front's depths run on between them).
+MAX_BETWEEN_SHARE = 0.1
+#: The near part reaches across the middle column where it does without this share of its pixels at either end: a
+#: few stray pixels of the far box measured near (3 of the joined boxes' 9449, 80 columns left of the rest) do not.
+STRAY_SHARE = 0.02
+
+
+def near_part_sides(depth: DepthResult, dense: DenseDisparity, object_labels: torch.Tensor, rectified: torch.Tensor,
+                    H_left: torch.Tensor, image_hw: torch.Tensor, focal_px: torch.Tensor, baseline_m: torch.Tensor,
+                    doffs_px: torch.Tensor, cut: torch.Tensor | None = None) -> DepthResult:
+    """``depth`` with each object's side that of its near part where it lies on two surfaces apart, or that of the
+    pixels it was measured over where it was ``cut`` ``(B, N)`` to its near surface (module docstring), and the
+    nearest obstacle's side its object's. ``dense``: the final dense map (in rectified pixels where ``rectified``
+    ``(B,)``, by ``H_left`` ``(B, 3, 3)``); ``object_labels``: the labels the objects were measured over, input
+    pixels; ``image_hw`` ``(B, 2)`` and the rig's ``focal_px``, ``baseline_m``, ``doffs_px`` ``(B,)``."""
+    objects = depth.objects
+    b, n = objects.label.shape
+    # A screen: an object whose high percentile is under FAR_PART_RATIO times its low one has no far part to speak
+    # of, and keeps its side without its pixels read (a frame of single obstacles pays nothing).
+    apart = objects.depth_high_m >= FAR_PART_RATIO * objects.depth_low_m
+    cut = torch.zeros_like(objects.valid) if cut is None else cut
+    slots = torch.where(objects.valid & (apart | cut), objects.label, torch.full_like(objects.label, -1))
+    if n == 0 or not bool((slots > 0).any()):
+        return depth
+    disparity = dense.disparity_px.detach()
+    denominator = disparity + doffs_px.detach().to(disparity.dtype).view(b, 1, 1, 1)  # f·B / distance
+    scale = (focal_px.detach() * baseline_m.detach()).to(disparity.dtype).view(b, 1, 1, 1)
+    map_labels = _in_map_pixels(object_labels, rectified, H_left)
+    region = map_labels == slot_labels(slots).view(b, n, 1, 1)  # (B, N, H, W)
+    members = region & (dense.valid & (denominator > 0))
+    # Compared as disparities (f·B over each slot's bounds in metres): no division over the map.
+    low = objects.depth_low_m.detach().to(disparity.dtype).clamp_min(1e-12).view(b, n, 1, 1)
+    near = members & (denominator >= scale / (low * NEAR_PART_RATIO))
+    total, near_count = _count(members), _count(near)
+    far_count = _count(members & (denominator <= scale / (low * FAR_PART_RATIO)))
+    two = ((near_count > 0) & (far_count >= MIN_FAR_SHARE * total)
+           & (total - near_count - far_count <= MAX_BETWEEN_SHARE * total))
+    cut = cut & (slots > 0)
+    if not bool((two | cut).any()):
+        return depth
+    part = torch.where(two.view(b, n, 1, 1), near, region & cut.view(b, n, 1, 1))
+    side = torch.where(two | cut, _part_side(part, image_hw, disparity.dtype), objects.side)
+    objects = dataclasses.replace(objects, side=side)
+    nearest = depth.nearest
+    if nearest is not None:
+        at_slot = side.gather(1, nearest.slot.clamp_min(0).view(b, 1)).view(b)
+        nearest = dataclasses.replace(nearest, side=torch.where(nearest.valid, at_slot, nearest.side))
+    return dataclasses.replace(depth, objects=objects, nearest=nearest)
+
+
+def _part_side(part: torch.Tensor, image_hw: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+    """``(B, N)`` :class:`~svs_torch.depth.ObstacleSide` of each slot's pixels ``part`` ``(B, N, H, W)`` by the
+    regions' rule (:func:`svs_torch.depth.sparse._region_geometry`: the third its centroid falls in, the centre
+    where it reaches across the middle column), its ends taken without :data:`STRAY_SHARE` of its pixels each;
+    NONE where it holds none."""
+    per_column = part.view(torch.uint8).sum(dim=2, dtype=torch.int32)  # (B, N, W)
+    area = per_column.sum(dim=-1, keepdim=True)
+    columns = torch.arange(part.shape[-1], device=part.device, dtype=dtype)
+    centroid = (per_column.to(dtype) * columns).sum(dim=-1) / area.squeeze(-1).clamp_min(1).to(dtype)
+    width = image_hw[:, 1:].to(dtype)  # thirds of the pair's own width, in pixel-centre coordinates
+    side = torch.where(centroid < width / 3 - 0.5, int(ObstacleSide.LEFT),
+                       torch.where(centroid < 2 * width / 3 - 0.5, int(ObstacleSide.CENTRE), int(ObstacleSide.RIGHT)))
+    running = per_column.cumsum(dim=-1).to(dtype)
+    first = (running <= STRAY_SHARE * area).sum(dim=-1)  # the first column past the strays on the left ...
+    last = (running < (1 - STRAY_SHARE) * area).sum(dim=-1)  # ... and the last before those on the right
+    middle = (width - 1) / 2
+    side = torch.where((first <= middle) & (last >= middle), int(ObstacleSide.CENTRE), side)
+    return torch.where(area.squeeze(-1) > 0, side, int(ObstacleSide.NONE))
+
+
+def _count(pixels: torch.Tensor) -> torch.Tensor:
+    """``(B, N)`` int32 count of ``pixels`` ``(B, N, H, W)`` bool, as bytes (a bool sum goes through int64)."""
+    return pixels.view(torch.uint8).sum(dim=(2, 3), dtype=torch.int32)
