@@ -318,15 +318,15 @@ def nearness_logits(net: NearnessNet, left: torch.Tensor, right: torch.Tensor, g
 def segment_stereo_nearness(batch: StereoBatch, config: SegmentationConfig, net: NearnessNet,
                             left_logits: torch.Tensor | None = None,
                             measured: NearnessDisparity | None = None) -> StereoSegmentation:
-    """Both views of every pair (module docstring, steps 3–5): the drop-in for Otsu's
+    """Both views of every pair (module docstring, steps 3–5), the drop-in for
     :func:`~svs_torch.segmentation.segment_stereo`. ``left_logits`` and ``measured``: from :func:`nearness_logits`,
-    already computed by the caller (e.g. with gradients). Not differentiable. ``threshold`` holds the probability
-    threshold. The right view's ``binary`` and ``opened`` are its shifted kept regions. Status as the Otsu stage's
-    (``UNIFORM_IMAGE``: a one-level left or right image). A pair whose block matcher accepted less than
-    ``config.min_measured_share`` of its left view is segmented by Otsu and the two largest regions instead: its
-    disparity is chance."""
+    already computed by the caller (e.g. with gradients; ``net``'s threshold and matcher are still read). Not
+    differentiable. ``threshold`` holds the probability threshold, the right view's ``binary`` and ``opened`` its
+    shifted kept regions. Status as Otsu's (``UNIFORM_IMAGE``: a one-level view). A pair whose matcher accepted under
+    ``config.min_measured_share`` of its left view (a chance disparity) gets Otsu and the two largest regions."""
     check_instance(batch, "batch", StereoBatch)
     check_instance(config, "config", SegmentationConfig)
+    check_instance(net, "net", NearnessNet)  # read with left_logits too: None failed on net.config from inside
     b, rig = batch.batch_size, (config.ground, batch.baseline_m, batch.focal_px, config.camera_frames)
     source = "network" if left_logits is None else "left_logits"
     with torch.no_grad():

@@ -203,6 +203,16 @@ def test_shift_regions_to_right_moves_each_region_by_its_disparity():
             shift_regions_to_right(*args)
 
 
+def test_segment_stereo_nearness_refuses_no_net_even_with_the_left_logits(scenes):
+    """``net=None`` with ``left_logits`` failed with an AttributeError on ``net.config`` from inside: the net's
+    configuration (its probability threshold, its matcher) is read with the caller's logits too."""
+    batch = scenes.batch
+    logits, measured = nearness_logits(NearnessNet().eval(), batch.left, batch.right)
+    for extra in ({}, {"measured": measured}):
+        with pytest.raises(InputError, match="^net: expected a NearnessNet, got NoneType$"):
+            segment_stereo_nearness(batch, PipelineConfig().segmentation, None, left_logits=logits, **extra)
+
+
 @pytest.mark.parametrize("threads", [1, 2])
 def test_shift_regions_kernel_gives_the_torch_paths_labels(monkeypatch, threads):
     # Overlapping regions (the nearer wins, the earlier slot on equal shifts), shifts off either side, halves that
