@@ -104,17 +104,17 @@ def repeated_fields(result, index: int, factors: tuple[float, float]) -> list[di
     slots = result.depth.objects.valid.shape[1]
     if dense is None or dense.repeated is None or result.focal_px is None:
         return [{"period_px": None, "alias_depths_m": None} for _ in range(slots)]
-    one = slice(index, index + 1)
-    depth_m, valid = alias_depths_m(take_pairs(dense, torch.tensor([index]), dense.valid.shape[0]),
-                                    result.focal_px[one], result.baseline_m[one], result.doffs_px[one])
     periods = dense.repeated.period_px[index].tolist()
     unranged = result.unranged_repeated[index].tolist()
-    fields = []
-    for slot in range(slots):
-        aliases = [round(float(z), 3) for z, ok in zip(depth_m[0, slot].tolist(), valid[0, slot].tolist()) if ok]
-        fields.append({"period_px": round(periods[slot] * factors[0], 1) if periods[slot] > 0 else None,
-                       "alias_depths_m": aliases if unranged[slot] else None})
-    return fields
+    aliases: list[list[float] | None] = [None] * slots
+    if any(unranged):  # the distances a repeat fits, only where one was left without a distance: the pair's dense
+        one = slice(index, index + 1)  # map taken out for each pair reported took 0.5 ms of estimate --pairs' 46
+        depth_m, valid = alias_depths_m(take_pairs(dense, torch.tensor([index]), dense.valid.shape[0]),
+                                        result.focal_px[one], result.baseline_m[one], result.doffs_px[one])
+        aliases = [[round(float(z), 3) for z, ok in zip(depth_m[0, slot].tolist(), valid[0, slot].tolist()) if ok]
+                   if unranged[slot] else None for slot in range(slots)]
+    return [{"period_px": round(periods[slot] * factors[0], 1) if periods[slot] > 0 else None,
+             "alias_depths_m": aliases[slot]} for slot in range(slots)]
 
 
 def repeated_words(obj: dict) -> str | None:
