@@ -1038,6 +1038,40 @@ def test_the_bench_experiments_time_svs_torch_at_b_1_on_the_rivals_pairs(data_di
         assert all(row[0] == expected for row in rows[script]), (script, rows[script])
 
 
+def test_bench_differentiable_prints_and_writes_each_configurations_ratio_to_the_hard_forward(data_dir, tmp_path,
+                                                                                                monkeypatch, capsys):
+    """Found by a look at the benchmarks against the house rule (rivals in the same run, ratios printed):
+    bench_differentiable.py timed the differentiable forward + backward and the hard forward of each configuration
+    in the same run and printed the two times alone. Each configuration's ratio of the two medians is now printed
+    under a header that says which way it is, and written to the JSON."""
+    import types
+
+    import bench_differentiable
+
+    medians = iter([100.0, 350.0, 40.0, 120.0, 200.0, 900.0])  # hard, then fwd + bwd, of each configuration in turn
+    monkeypatch.setattr(bench_differentiable, "load_pairs", lambda data, count: (torch.rand(count, 1, 24, 32),) * 2)
+    monkeypatch.setattr(bench_differentiable, "load_obstacle_net", lambda: None)
+    monkeypatch.setattr(bench_differentiable, "subprocess", types.SimpleNamespace(  # (the peak's fresh processes)
+        run=lambda *args, **kwargs: types.SimpleNamespace(stdout="1.0\n")))
+    monkeypatch.setattr(bench_differentiable, "timed", lambda fn, repeats, pairs=1: {
+        "median_ms": (median := next(medians)), "min_ms": median, "max_ms": median, "ms_per_pair": median / pairs})
+    out = tmp_path / "out.json"
+    monkeypatch.setattr(sys, "argv", ["bench_differentiable.py", "--data", str(data_dir), "--repeats", "1",
+                                      "--batch", "1", "--threads", "1", "--json", str(out)])
+    bench_differentiable.main()
+    saved = json.loads(out.read_text())
+    for name in ("default", "otsu", "learned"):
+        results = saved["results"]
+        expected = results[f"{name}_differentiable_fwd_bwd"]["median_ms"] / results[f"{name}_hard"]["median_ms"]
+        assert saved["ratios"][f"{name}_differentiable_over_hard"] == pytest.approx(expected)
+    assert [saved["ratios"][f"{name}_differentiable_over_hard"] for name in ("default", "otsu", "learned")] == \
+        pytest.approx([3.5, 3.0, 4.5])
+    assert saved["metadata"]["ratios"].startswith("differentiable forward + backward time / hard forward time")
+    text = capsys.readouterr().out
+    assert "ratio: differentiable forward + backward time / hard forward time" in text
+    assert re.search(r"otsu_differentiable_over_hard +3\.00", text)
+
+
 def test_bench_ransac_records_the_runs_each_median_is_of():
     """Found by an audit: bench_ransac.py printed 'median of 5 runs' over its table while svs_torch_per_pair's was of
     2 (repeats // 2), the JSON recording 'repeats': 5 alone. Each row now records its runs, and the table's head
