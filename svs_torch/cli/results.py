@@ -58,8 +58,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         help="the summary as one JSON object: configs (best first by --sort, --top of them), "
                              "sort, best (each metric's best configuration id over every stored configuration, "
                              "listed or not), same_results (groups of configuration ids whose rows are the same on "
-                             "every pair, times aside), configs_without_rows and pairs_without_rows (recorded, "
-                             "never run: a run stopped before them)")
+                             "every pair, times aside), configs_without_rows and pairs_without_rows (recorded, no "
+                             "row yet: a run still going has not reached them, or one stopped before them) and "
+                             "sweep_writing (whether a sweep is writing the store now; an eval --db does not say)")
     parser.set_defaults(func=run)
 
 
@@ -68,7 +69,7 @@ def _number(value, digits: int = 1) -> str:
 
 
 def _print_summary(summaries: list[dict], best, args: argparse.Namespace, same: list[list[str]],
-                   unrun: tuple[int, int] = (0, 0), changed: Sequence[str] = ()) -> None:
+                   unrun: tuple[int, int, bool] = (0, 0, False), changed: Sequence[str] = ()) -> None:
     from ..evaluation.report import ranked_group, ranked_value
 
     shown = ranked_summaries(summaries, args)
@@ -119,21 +120,26 @@ def _print_summary(summaries: list[dict], best, args: argparse.Namespace, same: 
               + (f"  (tied with {tied} other{'s' * (tied > 1)})" if tied else ""))
 
 
-def _unrun_notes(configs: int, pairs: int, db: str, run: int) -> list[str]:
+def _unrun_notes(configs: int, pairs: int, writing: bool, db: str, run: int) -> list[str]:
     """Notes of the ``configs`` configurations and the ``pairs`` pairs recorded in ``db`` that have no row: an
     interrupted run's table read as a finished one (an audit: a sweep's 40 configurations of 1000 run, "best" of
-    the 40; and an eval --db stopped after 8 of its 45 pairs, summarised over the 8 without a word)."""
+    the 40; and an eval --db stopped after 8 of its 45 pairs, summarised over the 8 without a word). ``writing``: a
+    sweep is writing the store now (its claims, :func:`~svs_torch.evaluation.store_access.sweep_is_writing`), so
+    they are not run yet; else a run stopped before them, or one still running that the store cannot tell (an eval
+    --db holds no claim; a sweep where the system has no such locks): the notes said "stopped" of the pairs an eval
+    was still running."""
     notes = []
-    if configs:
-        many = configs != 1
-        notes.append(f"note: {configs} more configuration{'s' * many} recorded in {db} {'have' if many else 'has'} no "
-                     f"row yet (a sweep stopped before {'them' if many else 'it'}?): the ranking and the best are of "
-                     f"the {run} run; the sweep's command run again fills the rest")
-    if pairs:
-        many = pairs != 1
-        notes.append(f"note: {pairs} more pair{'s' * many} recorded in {db} {'have' if many else 'has'} no row in any "
-                     f"configuration (a sweep or eval --db stopped before {'them' if many else 'it'}?): the means are "
-                     f"over the pairs run; the same command run again fills the rest")
+    for count, noun, where, read in ((configs, "configuration", "", f"the ranking and the best are of the {run} run"),
+                                     (pairs, "pair", " in any configuration", "the means are over the pairs run")):
+        if not count:
+            continue
+        if writing:
+            why, fill = "not run yet: a sweep is writing the store now", "the running sweep fills those it covers"
+        else:
+            why = f"not run yet by a run still going, or a run stopped before {'them' if count > 1 else 'it'}"
+            fill = "the run going on, or the same command run again, fills the rest"
+        notes.append(f"note: {count} more {noun}{'s' * (count != 1)} recorded in {db} "
+                     f"{'have' if count != 1 else 'has'} no row{where} yet ({why}): {read} so far; {fill}")
     return notes
 
 
@@ -223,18 +229,23 @@ def ranked_summaries(summaries: list[dict], args: argparse.Namespace) -> list[di
     return ranked[:top] if top else ranked
 
 
-def _unrun(store, summaries: list[dict]) -> tuple[set[str], tuple[int, int]]:
-    """The configurations recorded in ``store``, and how many of them and of its pairs have no row."""
+def _unrun(store, summaries: list[dict], writing: bool) -> tuple[set[str], tuple[int, int, bool]]:
+    """The configurations recorded in ``store``, and how many of them and of its pairs have no row, and ``writing``
+    (a sweep is writing the store now)."""
     from ..evaluation.report import pairs_without_rows
 
     recorded = {c["config_id"] for c in store.configs()}
-    return recorded, (len(recorded - {s["config_id"] for s in summaries}), pairs_without_rows(store))
+    return recorded, (len(recorded - {s["config_id"] for s in summaries}), pairs_without_rows(store), writing)
 
 
 def run(args: argparse.Namespace) -> int:
     # The store's errors named the library's argument, "db: ...", where the usage line shows FILE.sqlite (an audit).
     with options_named(db="FILE.sqlite", store="FILE.sqlite"):
         return _run(args)
+
+
+#: What fills a store that has no row yet, where no sweep is writing it and where one is.
+_FILLS_AN_EMPTY_STORE = ("running the sweep's command again", "the sweep writing it now")
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -261,7 +272,7 @@ def _run(args: argparse.Namespace) -> int:
     # `results DB --csv DB` wrote the table over the store
     check_outputs_apart([("--csv", None if args.csv == "-" else args.csv), (args.figure_option, args.figure)],
                         [("results file itself", args.db)])
-    if sweep_is_writing(args.db):  # (before the store is opened: see there) the table read as a finished one
+    if writing := sweep_is_writing(args.db):  # (before the store is opened: see there) the table read as finished
         print(f"svs-depth results: note: a sweep is writing {args.db} now; these are the rows stored so far",
               file=sys.stderr)
     with ResultStore(args.db, create=False) as store:
@@ -281,7 +292,7 @@ def _run(args: argparse.Namespace) -> int:
             rows = store.results()  # read once, for both
             summaries = config_summaries(store, rows)
             best = best_by_metric(summaries)
-            recorded, unrun = _unrun(store, summaries)
+            recorded, unrun = _unrun(store, summaries, writing)
             if args.json:
                 # "best" over every configuration, as the text's: over the --top listed it named another (the best
                 # of two listed by R_min 99.408 % where a configuration left out read 99.411), and broke ties in
@@ -289,10 +300,10 @@ def _run(args: argparse.Namespace) -> int:
                 print(dumps_strict({"configs": ranked_summaries(summaries, args), "sort": args.sort,
                                     "best": {key: s["config_id"] for key, _, s in best},
                                     "same_results": same_results(store, rows), "configs_without_rows": unrun[0],
-                                    "pairs_without_rows": unrun[1]}))
+                                    "pairs_without_rows": unrun[1], "sweep_writing": writing}))
             elif not summaries:  # an empty table read as a result (an audit: the figure said "no results yet")
                 print(f"{args.db}: no results yet ({len(recorded)} configuration{'s' * (len(recorded) != 1)} recorded, "
-                      f"no pair run); running the sweep's command again fills it")
+                      f"no pair run); {_FILLS_AN_EMPTY_STORE[writing]} fills it")
             else:
                 _print_summary(summaries, best, args, same_results(store, rows), unrun,
                                _changed_files_notes(store, args.db))

@@ -556,9 +556,10 @@ def test_results_say_the_configurations_a_stopped_sweep_never_ran(reference, tmp
     assert main(["results", str(db)]) == 0
     out = capsys.readouterr().out
     assert out.splitlines()[0].startswith(f"{recorded - 1} configurations; ranked by")
-    assert out.splitlines()[1] == (f"note: 1 more configuration recorded in {db} has no row yet (a sweep stopped "
-                                   f"before it?): the ranking and the best are of the {recorded - 1} run; the sweep's "
-                                   "command run again fills the rest")
+    assert out.splitlines()[1] == (f"note: 1 more configuration recorded in {db} has no row yet (not run yet by a run "
+                                   f"still going, or a run stopped before it): the ranking and the best are of the "
+                                   f"{recorded - 1} run so far; the run going on, or the same command run again, fills "
+                                   "the rest")
     assert main(["results", str(db), "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["configs_without_rows"] == 1
     assert main(["results", str(reference[1]), "--json"]) == 0
@@ -576,8 +577,8 @@ def test_results_say_the_pairs_a_stopped_run_never_reached(data_dir, reference, 
         pair_id = connection.execute("SELECT pair_id FROM results ORDER BY pair_id LIMIT 1").fetchone()[0]
         connection.execute("DELETE FROM results WHERE pair_id = ?", (pair_id,))
     assert main(["results", str(db)]) == 0
-    assert (f"note: 1 more pair recorded in {db} has no row in any configuration (a sweep or eval --db stopped "
-            "before it?)") in capsys.readouterr().out
+    assert (f"note: 1 more pair recorded in {db} has no row in any configuration yet (not run yet by a run still "
+            "going, or a run stopped before it)") in capsys.readouterr().out
     assert main(["results", str(db), "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["pairs_without_rows"] == 1
     assert main(["results", str(reference[1]), "--json"]) == 0
@@ -588,6 +589,45 @@ def test_results_say_the_pairs_a_stopped_run_never_reached(data_dir, reference, 
     capsys.readouterr()
     assert main(["results", str(tmp_path / "bad.sqlite"), "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["pairs_without_rows"] == 0
+
+
+@pytest.mark.skipif(not (os.name == "posix" and hasattr(__import__("fcntl"), "F_OFD_SETLK")),
+                    reason="needs open-file-description locks (Linux)")
+def test_results_say_the_pairs_a_running_sweep_has_not_reached_yet_are_not_run_yet(reference, tmp_path, capsys):
+    """From the lead's brief: results on a store a run was still writing said of the pairs it had not reached yet
+    "never run: a run stopped before them" (--json's help; the table's note: "stopped before it?"). A sweep holds
+    its claims while it runs, which results reads: the notes then say the pairs are not run yet and --json says
+    sweep_writing; where no sweep holds any (an eval --db holds none), the note says both what may be."""
+    from svs_torch.evaluation.store import ResultStore
+
+    db = tmp_path / "running.sqlite"
+    with edited_copy(reference, db) as connection:
+        pair_id = connection.execute("SELECT pair_id FROM results ORDER BY pair_id LIMIT 1").fetchone()[0]
+        connection.execute("DELETE FROM results WHERE pair_id = ?", (pair_id,))
+    empty = tmp_path / "empty.sqlite"  # (the sweep has not stored its first row yet)
+    with edited_copy(reference, empty) as connection:
+        connection.execute("DELETE FROM results")
+    with ResultStore(db) as running, ResultStore(empty) as starting:
+        running.claim_for_a_sweep(["a configuration of the running sweep"])
+        starting.claim_for_a_sweep(["a configuration of the running sweep"])
+        assert main(["results", str(empty)]) == 0
+        assert capsys.readouterr().out.endswith("no pair run); the sweep writing it now fills it\n")
+        assert main(["results", str(db)]) == 0
+        out = capsys.readouterr().out
+        assert (f"note: 1 more pair recorded in {db} has no row in any configuration yet (not run yet: a sweep is "
+                "writing the store now): the means are over the pairs run so far; the running sweep fills those it "
+                "covers" in out), out
+        assert "stopped" not in out
+        assert main(["results", str(db), "--json"]) == 0
+        assert json.loads(capsys.readouterr().out)["sweep_writing"] is True
+    assert main(["results", str(db), "--json"]) == 0
+    saved = json.loads(capsys.readouterr().out)
+    assert saved["sweep_writing"] is False and saved["pairs_without_rows"] == 1
+    assert main(["results", str(db)]) == 0
+    assert "(not run yet by a run still going, or a run stopped before it)" in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        main(["results", "--help"])
+    assert "never run" not in capsys.readouterr().out
 
 
 def test_csv_parameter_columns_hold_the_values_that_ran(data_dir, tmp_path, capsys):
