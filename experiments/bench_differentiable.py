@@ -32,7 +32,7 @@ from svs_torch.segmentation.segment import SegmentationConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from svs_torch.cli.common import positive_int  # noqa: E402
-from run_metadata import add_common_options, run_metadata, run_script, write_text_whole  # noqa: E402
+from run_metadata import add_common_options, command_line, run_metadata, run_script, write_text_whole  # noqa: E402
 from bench_segmentation import load_pairs, timed  # noqa: E402
 
 #: What each configuration's ratio is, as the report prints it and its JSON's metadata says.
@@ -129,8 +129,8 @@ def main(argv: list[str] | None = None) -> dict:
             pairs=args.batch)
         ratios[f"{name}_differentiable_over_hard"] = soft["median_ms"] / hard["median_ms"]
     print_report(args, results, ratios)
-    report = {"metadata": run_metadata(args.threads, batch=args.batch, ratios=RATIOS), "results": results,
-              "ratios": ratios}
+    report = {"metadata": run_metadata(args.threads, command=command_line("experiments/bench_differentiable.py", argv),
+                                       batch=args.batch, ratios=RATIOS), "results": results, "ratios": ratios}
     if args.json:
         write_text_whole(args.json, json.dumps(report, indent=2))
     return report
