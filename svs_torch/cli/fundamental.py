@@ -101,7 +101,7 @@ def homography_fit(inliers: list[list[float]], threshold_px: float, max_iteratio
 
     points = np.asarray(inliers, dtype=np.float64)
     homography, mask = cv2.findHomography(points[:, :2], points[:, 2:], cv2.RANSAC, threshold_px,
-                                              maxIters=max_iterations)
+                                          maxIters=max_iterations)
     if mask is None:
         return None
     mapped = cv2.perspectiveTransform(points[None, :, :2], homography)[0]
