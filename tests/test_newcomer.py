@@ -165,7 +165,7 @@ def test_results_of_a_store_without_rows_says_so(tmp_path, capsys):
     store.close()
     assert main(["results", str(tmp_path / "empty.sqlite")]) == 0
     assert capsys.readouterr().out == (f"{tmp_path / 'empty.sqlite'}: no results yet (2 configurations recorded, no "
-                                       "pair run); running the sweep's command again fills it\n")
+                                       "pair run); the run going on, or the same command run again, fills it\n")
     assert main(["results", str(tmp_path / "empty.sqlite"), "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["configs"] == []
     # An audit of sweeps: with --figure too the --csv was written (a header alone) before the figure said so, exit 2.

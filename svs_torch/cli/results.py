@@ -244,8 +244,10 @@ def run(args: argparse.Namespace) -> int:
         return _run(args)
 
 
-#: What fills a store that has no row yet, where no sweep is writing it and where one is.
-_FILLS_AN_EMPTY_STORE = ("running the sweep's command again", "the sweep writing it now")
+#: What fills a store that has no row yet, where no sweep is writing it and where one is. Where none is, as the notes
+#: of a store with rows say (_unrun_notes): an eval --db records its configuration and pairs before its first row and
+#: holds no claim, and its store, read while it ran, was to be filled by "running the sweep's command again".
+_FILLS_AN_EMPTY_STORE = ("the run going on, or the same command run again,", "the sweep writing it now")
 
 
 def _run(args: argparse.Namespace) -> int:

@@ -630,6 +630,24 @@ def test_results_say_the_pairs_a_running_sweep_has_not_reached_yet_are_not_run_y
     assert "never run" not in capsys.readouterr().out
 
 
+def test_results_of_an_eval_store_without_rows_does_not_send_the_user_to_a_sweep(tmp_path, capsys):
+    """Found reviewing bbf0f95 (results' notes of a store a run is still writing): a store with no row yet and no
+    sweep writing it still said "running the sweep's command again fills it", where an eval --db, which records its
+    configuration and pairs before its first row and holds no claim, had made it (read while it ran, or after it
+    stopped). It now says what the notes of a store with rows say."""
+    from svs_torch.evaluation.store import ResultStore
+    from svs_torch.evaluation.sweep import make_sweep_config
+
+    db = tmp_path / "eval.sqlite"
+    with ResultStore(db) as store:  # as eval --db leaves it before its first row (cli/eval_store.py's _open_store)
+        store.add_configs([make_sweep_config("default", {}, None).record()])
+        store.start_run("eval", "abc1234", {}, "eval pairs.txt --db eval.sqlite")
+    assert main(["results", str(db)]) == 0
+    out = capsys.readouterr().out
+    assert out == (f"{db}: no results yet (1 configuration recorded, no pair run); the run going on, or the same "
+                   "command run again, fills it\n"), out
+
+
 def test_csv_parameter_columns_hold_the_values_that_ran(data_dir, tmp_path, capsys):
     """Found by a review of the evaluation: a param: column held the override, so a configuration that kept its
     preset's value showed an empty cell (the default's max_ratio 0.8, the paper preset's 0.6)."""
