@@ -280,7 +280,7 @@ def _run(args: argparse.Namespace) -> int:
     with ResultStore(args.db, create=False) as store:
         if args.figure:  # first: a store without rows has no figure, and its --csv was written before it said so
             with write_errors_named(args.figure_option, args.figure):
-                plot_results(store, args.figure)
+                plot_results(store, args.figure, writing)
             print(f"figure written to {args.figure}", file=sys.stderr)
         if args.csv:
             header, rows = csv_table(store)

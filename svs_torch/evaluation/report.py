@@ -310,18 +310,18 @@ def _parameter_axis(axis, summaries: Sequence[dict], configs: dict[str, dict], k
     axis.legend(fontsize=7)
 
 
-def plot_results(store: ResultStore, path: str | Path) -> Path:
-    """Write :func:`results_figure` to ``path`` (any image format matplotlib writes), under a temporary name and
-    renamed, never half-written. A bad ``path`` is refused by name before the figure is drawn (an audit: a folder
-    or a .txt was matplotlib's "Format '' is not supported", a missing folder a FileNotFoundError naming the
-    temporary file, None a TypeError)."""
+def plot_results(store: ResultStore, path: str | Path, writing: bool = False) -> Path:
+    """Write :func:`results_figure` (``writing`` as there) to ``path`` (any image format matplotlib writes), under a
+    temporary name and renamed, never half-written. A bad ``path`` is refused by name before the figure is drawn (an
+    audit: a folder or a .txt was matplotlib's "Format '' is not supported", a missing folder a FileNotFoundError
+    naming the temporary file, None a TypeError)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.text import Text
 
     check_instance(store, "store", ResultStore)
     suffixes = tuple(f".{kind}" for kind in sorted(FigureCanvasAgg.get_supported_filetypes()))
     path = check_output_file(path, "path", suffixes, f"an image ({', '.join(suffixes)})")
-    figure = results_figure(store)
+    figure = results_figure(store, writing)
     for text in figure.findobj(Text):  # a scene folder's name with '$' drawn as written, as plotting.plain_texts
         text.set_parse_math(False)
     with atomic_output(path) as stream:
@@ -329,14 +329,15 @@ def plot_results(store: ResultStore, path: str | Path) -> Path:
     return path
 
 
-def results_figure(store: ResultStore):
+def results_figure(store: ResultStore, writing: bool = False):
     """The results figure (a matplotlib Figure): one panel per swept parameter (mean Eq. (9) accuracy of R_min,
     R_max and objects at each value, averaged over the other parameters) and, filling the rest of the last row (or a
     row of its own, as wide as its scenes need), per-scene bars of the best configuration by object accuracy, zoomed
     to the data, its legend above them; the title says where a configuration has no rows or lacks pairs the others
     have. An Agg canvas of its own, no pyplot: the caller's backend and pyplot's figures are left as they were (an
     audit of the API's effect on its caller: ``matplotlib.use("Agg")`` here turned a notebook's inline plots off for
-    the rest of its session, and each call left one more figure open in pyplot)."""
+    the rest of its session, and each call left one more figure open in pyplot). ``writing``: a sweep is writing
+    the store now (:func:`~.store_access.sweep_is_writing`, read before the store is opened), which the title says."""
     check_instance(store, "store", ResultStore)
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
@@ -365,22 +366,25 @@ def results_figure(store: ResultStore):
     tied = sum(ranked_value(s, "acc_objects_pct") == ranked_value(best, "acc_objects_pct") for s in summaries) - 1
     _scene_bars(figure.add_subplot(grid[row, column:]), store, best, tied)  # the rest of its row: no empty panels
     # Wrapped to the figure (about 11 characters an inch at 11 pt): one swept parameter's is 10.4 in wide, none's 5.2.
-    title = f"{store.path.name}: {_rows_in_title(summaries, len(configs))}".split("\n")
+    title = f"{store.path.name}: {_rows_in_title(summaries, len(configs), writing)}".split("\n")
     figure.suptitle("\n".join(textwrap.fill(line, int(figure.get_figwidth() * 11)) for line in title), fontsize=11)
     figure.tight_layout()
     return figure
 
 
-def _rows_in_title(summaries: Sequence[dict], recorded: int) -> str:
+def _rows_in_title(summaries: Sequence[dict], recorded: int, writing: bool) -> str:
     """The figure's title after the store's name: how many configurations have rows, and, as the summary's notes
     say, where that is fewer than the ``recorded`` ones or some lack pairs the others have, that each mean is over
-    the rows there are (an audit: a stopped sweep's panels averaged over different parts of the grid, unsaid)."""
+    the rows there are (an audit: a stopped sweep's panels averaged over different parts of the grid, unsaid); not
+    that a sweep stopped where one is ``writing`` the store, or an eval --db (no claim) may still be running."""
     count, short = len(summaries), sum(1 for s in summaries if s.get("pairs_missing"))
     if count >= recorded and not short:
         return f"{count} configuration{'' if count == 1 else 's'}"
     return (f"{count} of {recorded} configurations have rows"
             + (f", {short} of them not on every pair" if short else "")
-            + "\neach mean is over the rows stored (a sweep stopped before the rest? its command run again fills it)")
+            + "\neach mean is over the rows stored so far (" + ("a sweep is writing the store now" if writing else
+                                                               "a run still going, or one stopped before the rest: "
+                                                               "the same command run again fills it") + ")")
 
 
 def pairs_without_rows(store) -> int:

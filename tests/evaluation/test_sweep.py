@@ -648,6 +648,33 @@ def test_results_of_an_eval_store_without_rows_does_not_send_the_user_to_a_sweep
                    "command run again, fills it\n"), out
 
 
+@pytest.mark.skipif(not (os.name == "posix" and hasattr(__import__("fcntl"), "F_OFD_SETLK")),
+                    reason="needs open-file-description locks (Linux)")
+def test_the_figure_of_a_store_a_sweep_is_writing_does_not_say_a_sweep_stopped(reference, tmp_path):
+    """Found reviewing bbf0f95 (results' notes of a store a run is still writing): results --figure on a store a
+    sweep was writing titled the figure "each mean is over the rows stored (a sweep stopped before the rest? ...)",
+    while the table of the same command said the sweep was writing it. The title now says what the notes say."""
+    import svs_torch.evaluation.report as report
+    from svs_torch.evaluation.store import ResultStore
+
+    db = tmp_path / "running.sqlite"
+    with edited_copy(reference, db) as connection:
+        last = connection.execute("SELECT max(config_id) FROM results").fetchone()[0]
+        connection.execute("DELETE FROM results WHERE config_id = ?", (last,))
+    titles = []
+    real = report.results_figure
+    with pytest.MonkeyPatch.context() as patch:  # the title of each figure written
+        patch.setattr(report, "results_figure", lambda *args: (figure := real(*args), titles.append(
+            figure.get_suptitle()))[0])
+        with ResultStore(db) as running:
+            running.claim_for_a_sweep(["a configuration of the running sweep"])
+            assert main(["results", str(db), "--figure", str(tmp_path / "running.png")]) == 0
+        assert main(["results", str(db), "--figure", str(tmp_path / "stopped.png")]) == 0
+    writing, after = (" ".join(title.split()) for title in titles)
+    assert "stopped" not in writing and "(a sweep is writing the store now)" in writing, writing
+    assert "(a run still going, or one stopped before the rest: the same command run again fills it)" in after, after
+
+
 def test_csv_parameter_columns_hold_the_values_that_ran(data_dir, tmp_path, capsys):
     """Found by a review of the evaluation: a param: column held the override, so a configuration that kept its
     preset's value showed an empty cell (the default's max_ratio 0.8, the paper preset's 0.6)."""
