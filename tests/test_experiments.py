@@ -1030,7 +1030,7 @@ def test_the_bench_experiments_time_svs_torch_at_b_1_on_the_rivals_pairs(data_di
     bench_pipeline.main()
     bench_features.main()
     bench_dense.main(["--data", str(data_dir), "--repeats", "1", "--threads", "1", "--batch", "4"])
-    assert len(rows["pipeline"]) == 5 and len(rows["features"]) == 10 and len(rows["dense"]) == 12
+    assert len(rows["pipeline"]) == 5 and len(rows["features"]) == 11 and len(rows["dense"]) == 12
     for script, expected in (("pipeline", 32), ("features", 32), ("dense", 4)):
         svs_rows = [row for row in rows[script] if row[1]]  # (the rivals' rows call no svs_torch function)
         assert len(svs_rows) == {"pipeline": 4, "features": 8, "dense": 8}[script]
