@@ -125,6 +125,14 @@ def _open_store(args: argparse.Namespace, preset, overrides, size_wh, sources) -
     sweep_config = make_sweep_config(preset, overrides, size_wh)
     with options_named(db="--db"):  # the store's errors named its argument, "db:", not the option (an audit)
         store = ResultStore(check_storable(args.db, sources))  # paths a store cannot keep refused before it is made
+        try:
+            # Held as a sweep holds its configurations, so that results reading the store while this runs says the
+            # pairs not reached are not run yet (it said "stopped before them"), and a sweep or another eval of the
+            # same configuration on it waits for this one, nothing recorded.
+            store.claim_for_a_sweep([sweep_config.config_id])
+        except BaseException:
+            store.close()
+            raise
     store.add_configs([sweep_config.record()])
     store.add_pairs(sources)
     run_id = store.start_run("eval", code_version(), environment("in-process", 0, None), " ".join(sys.argv[1:]))

@@ -60,7 +60,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                              "listed or not), same_results (groups of configuration ids whose rows are the same on "
                              "every pair, times aside), configs_without_rows and pairs_without_rows (recorded, no "
                              "row yet: a run still going has not reached them, or one stopped before them) and "
-                             "sweep_writing (whether a sweep is writing the store now; an eval --db does not say)")
+                             "writing (whether a sweep or an eval --db is writing the store now)")
     parser.set_defaults(func=run)
 
 
@@ -124,17 +124,17 @@ def _unrun_notes(configs: int, pairs: int, writing: bool, db: str, run: int) -> 
     """Notes of the ``configs`` configurations and the ``pairs`` pairs recorded in ``db`` that have no row: an
     interrupted run's table read as a finished one (an audit: a sweep's 40 configurations of 1000 run, "best" of
     the 40; and an eval --db stopped after 8 of its 45 pairs, summarised over the 8 without a word). ``writing``: a
-    sweep is writing the store now (its claims, :func:`~svs_torch.evaluation.store_access.sweep_is_writing`), so
-    they are not run yet; else a run stopped before them, or one still running that the store cannot tell (an eval
-    --db holds no claim; a sweep where the system has no such locks): the notes said "stopped" of the pairs an eval
-    was still running."""
+    sweep or an eval --db is writing the store now (its claims,
+    :func:`~svs_torch.evaluation.store_access.sweep_is_writing`), so they are not run yet; else a run stopped before
+    them, or one still running that the store cannot tell (where the system has no such locks): the notes said
+    "stopped" of the pairs an eval was still running."""
     notes = []
     for count, noun, where, read in ((configs, "configuration", "", f"the ranking and the best are of the {run} run"),
                                      (pairs, "pair", " in any configuration", "the means are over the pairs run")):
         if not count:
             continue
         if writing:
-            why, fill = "not run yet: a sweep is writing the store now", "the running sweep fills those it covers"
+            why, fill = f"not run yet: {WRITERS} is writing the store now", "the run writing it fills those it covers"
         else:
             why = f"not run yet by a run still going, or a run stopped before {'them' if count > 1 else 'it'}"
             fill = "the run going on, or the same command run again, fills the rest"
@@ -231,7 +231,7 @@ def ranked_summaries(summaries: list[dict], args: argparse.Namespace) -> list[di
 
 def _unrun(store, summaries: list[dict], writing: bool) -> tuple[set[str], tuple[int, int, bool]]:
     """The configurations recorded in ``store``, and how many of them and of its pairs have no row, and ``writing``
-    (a sweep is writing the store now)."""
+    (a sweep or an eval --db is writing the store now)."""
     from ..evaluation.report import pairs_without_rows
 
     recorded = {c["config_id"] for c in store.configs()}
@@ -244,10 +244,14 @@ def run(args: argparse.Namespace) -> int:
         return _run(args)
 
 
-#: What fills a store that has no row yet, where no sweep is writing it and where one is. Where none is, as the notes
-#: of a store with rows say (_unrun_notes): an eval --db records its configuration and pairs before its first row and
-#: holds no claim, and its store, read while it ran, was to be filled by "running the sweep's command again".
-_FILLS_AN_EMPTY_STORE = ("the run going on, or the same command run again,", "the sweep writing it now")
+#: Who may be writing a store ``results`` reads: both hold their configurations in it while they run
+#: (:meth:`~svs_torch.evaluation.store.ResultStore.claim_for_a_sweep`).
+WRITERS = "a sweep or an eval --db"
+
+#: What fills a store that has no row yet, where no run is writing it and where one is. Where none is, as the notes
+#: of a store with rows say (_unrun_notes): an eval --db records its configuration and pairs before its first row,
+#: and its store, read while it ran, was to be filled by "running the sweep's command again".
+_FILLS_AN_EMPTY_STORE = ("the run going on, or the same command run again,", "the run writing it now")
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -275,7 +279,7 @@ def _run(args: argparse.Namespace) -> int:
     check_outputs_apart([("--csv", None if args.csv == "-" else args.csv), (args.figure_option, args.figure)],
                         [("results file itself", args.db)])
     if writing := sweep_is_writing(args.db):  # (before the store is opened: see there) the table read as finished
-        print(f"svs-depth results: note: a sweep is writing {args.db} now; these are the rows stored so far",
+        print(f"svs-depth results: note: {WRITERS} is writing {args.db} now; these are the rows stored so far",
               file=sys.stderr)
     with ResultStore(args.db, create=False) as store:
         if args.figure:  # first: a store without rows has no figure, and its --csv was written before it said so
@@ -302,7 +306,7 @@ def _run(args: argparse.Namespace) -> int:
                 print(dumps_strict({"configs": ranked_summaries(summaries, args), "sort": args.sort,
                                     "best": {key: s["config_id"] for key, _, s in best},
                                     "same_results": same_results(store, rows), "configs_without_rows": unrun[0],
-                                    "pairs_without_rows": unrun[1], "sweep_writing": writing}))
+                                    "pairs_without_rows": unrun[1], "writing": writing}))
             elif not summaries:  # an empty table read as a result (an audit: the figure said "no results yet")
                 print(f"{args.db}: no results yet ({len(recorded)} configuration{'s' * (len(recorded) != 1)} recorded, "
                       f"no pair run); {_FILLS_AN_EMPTY_STORE[writing]} fills it")

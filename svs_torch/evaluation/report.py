@@ -336,8 +336,9 @@ def results_figure(store: ResultStore, writing: bool = False):
     to the data, its legend above them; the title says where a configuration has no rows or lacks pairs the others
     have. An Agg canvas of its own, no pyplot: the caller's backend and pyplot's figures are left as they were (an
     audit of the API's effect on its caller: ``matplotlib.use("Agg")`` here turned a notebook's inline plots off for
-    the rest of its session, and each call left one more figure open in pyplot). ``writing``: a sweep is writing
-    the store now (:func:`~.store_access.sweep_is_writing`, read before the store is opened), which the title says."""
+    the rest of its session, and each call left one more figure open in pyplot). ``writing``: a sweep or an eval
+    --db is writing the store now (:func:`~.store_access.sweep_is_writing`, read before the store is opened), which
+    the title says."""
     check_instance(store, "store", ResultStore)
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
@@ -382,9 +383,9 @@ def _rows_in_title(summaries: Sequence[dict], recorded: int, writing: bool) -> s
         return f"{count} configuration{'' if count == 1 else 's'}"
     return (f"{count} of {recorded} configurations have rows"
             + (f", {short} of them not on every pair" if short else "")
-            + "\neach mean is over the rows stored so far (" + ("a sweep is writing the store now" if writing else
-                                                               "a run still going, or one stopped before the rest: "
-                                                               "the same command run again fills it") + ")")
+            + "\neach mean is over the rows stored so far ("
+            + ("a sweep or an eval --db is writing the store now" if writing else
+               "a run still going, or one stopped before the rest: the same command run again fills it") + ")")
 
 
 def pairs_without_rows(store) -> int:

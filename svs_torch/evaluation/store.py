@@ -234,9 +234,9 @@ class ResultStore:
             self._claim = None
 
     def claim_for_a_sweep(self, config_ids: Iterable[str]) -> None:
-        """Hold ``config_ids`` in the store for this process's sweep until it closes (:mod:`.store_access`): two
-        sweeps on one store each ran every task, their rows right but the work done twice, without a word (an
-        audit); two sweeps of different configurations run together.
+        """Hold ``config_ids`` in the store for this process's sweep or eval --db until it closes (the claims of
+        :mod:`.store_access`): two sweeps on one store each ran every task, their rows right, the work done twice,
+        without a word (an audit); two of different configurations run together.
 
         Raises:
             InputError: naming ``db``, where another process holds any of them."""

@@ -103,8 +103,8 @@ def claim_configs(path: Path, config_ids: Iterable[str]) -> IO | None:
             handle.close()
             if error.errno not in (errno.EAGAIN, errno.EWOULDBLOCK, errno.EACCES):  # no locks there (see _lock)
                 return None
-            raise InputError(f"db: another sweep is writing {path}; run this one once it has ended (it then runs "
-                             "only what is missing), or give another store") from None
+            raise InputError(f"db: another run (a sweep or an eval --db) is writing {path}; run this one once it has "
+                             "ended (it then runs only what is missing), or give another store") from None
     # Opened to write (a write lock needs it), never written.
     handle = open(path, "r+b")  # noqa: SIM115 (held open until the store closes)
     _lock(fcntl, handle, fcntl.F_OFD_SETLKW, _CLAIMING_BYTE, fcntl.F_WRLCK)  # waits for another's claiming only
@@ -112,16 +112,16 @@ def claim_configs(path: Path, config_ids: Iterable[str]) -> IO | None:
     _lock(fcntl, handle, ofd, _CLAIMING_BYTE, fcntl.F_UNLCK)
     if held:
         handle.close()
-        raise InputError(f"db: another sweep is writing {path} and running {len(held)} of this sweep's "
-                         f"{len(wanted)} configuration{'s' * (len(wanted) != 1)}; run this one once it has ended "
-                         "(it then runs only what is missing), or give another store")
+        raise InputError(f"db: another run (a sweep or an eval --db) is writing {path} and running {len(held)} of "
+                         f"this run's {len(wanted)} configuration{'s' * (len(wanted) != 1)}; run this one once it has "
+                         "ended (it then runs only what is missing), or give another store")
     return handle
 
 
 def sweep_is_writing(path: str | Path) -> bool:
-    """Whether a sweep holds configurations in the store ``path`` now (False where that cannot be told: no OFD
-    locks, a file that cannot be opened). Call it before the store is opened in this process: closing a handle of
-    the file drops the process's own SQLite locks on it."""
+    """Whether a sweep or an eval --db holds configurations in the store ``path`` now (False where that cannot be
+    told: no OFD locks, a file that cannot be opened). Call it before the store is opened in this process: closing a
+    handle of the file drops the process's own SQLite locks on it."""
     try:
         import fcntl
 

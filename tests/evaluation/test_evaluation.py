@@ -972,3 +972,40 @@ def test_the_summary_gathered_pair_by_pair_is_the_lists_to_the_bit():
         running.add(row)
         if number in (1, 7, 150, 300):
             assert running.summary(2.0) == summarize(rows[:number], wall_s=2.0)
+
+
+@pytest.mark.skipif(not (sys.platform.startswith("linux")), reason="needs open-file-description locks (Linux)")
+def test_eval_db_holds_its_configuration_while_it_runs_so_results_says_the_rest_is_not_run_yet(data_dir, tmp_path,
+                                                                                                 capsys, monkeypatch):
+    """Found by an audit of results on a store still being written: an eval --db held no claim, so results read
+    while it ran could not tell it from a stopped one ("not run yet by a run still going, or a run stopped before
+    it"), and a sweep of the same configuration on the store ran its pairs a second time beside it. eval now holds
+    its configuration as a sweep does, while it runs: another process sees the store written, and a second eval of
+    that configuration is refused naming --db, nothing recorded by it; once eval ends, nothing is held."""
+    import contextlib
+    import subprocess
+
+    from svs_torch.evaluation.store import ResultStore
+
+    teddy = data_dir / "middlebury_eval3_Q" / "Teddy"
+    db = tmp_path / "runs.sqlite"
+    seen = []
+    probe = [sys.executable, "-c", "import sys; from svs_torch.evaluation.store_access import sweep_is_writing; "
+             "print(sweep_is_writing(sys.argv[1]))", str(db)]
+    real = ResultStore.write_task
+
+    def write_task(store, *args, **kwargs):  # while eval runs: another process reads the store, a second eval starts
+        seen.append(subprocess.run(probe, capture_output=True, text=True, check=True).stdout.strip())
+        seen.append(main(["eval", str(teddy), "--size", "160x120", "--db", str(db), "--json"]))
+        return real(store, *args, **kwargs)
+
+    monkeypatch.setattr(ResultStore, "write_task", write_task)
+    assert main(["eval", str(teddy), "--size", "160x120", "--db", str(db), "--json"]) == 0
+    err = capsys.readouterr().err
+    assert seen == ["True", 2], seen
+    assert f"--db: another run (a sweep or an eval --db) is writing {db}" in err, err
+    assert subprocess.run(probe, capture_output=True, text=True, check=True).stdout.strip() == "False"
+    import sqlite3
+
+    with contextlib.closing(sqlite3.connect(db)) as connection:  # the refused eval recorded no run
+        assert connection.execute("SELECT count(*) FROM runs").fetchone() == (1,)

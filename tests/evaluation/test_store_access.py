@@ -23,8 +23,9 @@ def test_claims_of_other_configurations_are_taken_beside_and_the_same_refused(tm
     with ResultStore(db) as first, ResultStore(db) as second, ResultStore(db) as third:
         first.claim_for_a_sweep(["a", "b"])
         second.claim_for_a_sweep(["c"])  # another grid: no refusal
-        with pytest.raises(InputError, match=f"^db: another sweep is writing {db} and running 1 of this sweep's 2 "
-                                             r"configurations; run this one once it has ended \(it then runs only"):
+        with pytest.raises(InputError, match=rf"^db: another run \(a sweep or an eval --db\) is writing {db} and "
+                                             r"running 1 of this run's 2 configurations; run this one once it has ended "
+                                             r"\(it then runs only"):
             third.claim_for_a_sweep(["d", "b"])
         assert sweep_is_writing(db)
         first.close()
@@ -54,7 +55,8 @@ def test_without_ofd_locks_one_sweep_holds_the_store_and_its_own_sqlite_locks_do
     with ResultStore(db) as first, ResultStore(db) as second:
         first.claim_for_a_sweep(["a"])
         first.start_run("sweep", "v", {}, "")  # its own writes go on
-        with pytest.raises(InputError, match=f"^db: another sweep is writing {db}; run this one once it has ended"):
+        with pytest.raises(InputError, match=rf"^db: another run \(a sweep or an eval --db\) is writing {db}; run "
+                           "this one once it has ended"):
             second.claim_for_a_sweep(["b"])
         first.close()
         second.claim_for_a_sweep(["b"])  # released with the store

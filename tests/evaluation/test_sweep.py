@@ -597,7 +597,8 @@ def test_results_say_the_pairs_a_running_sweep_has_not_reached_yet_are_not_run_y
     """From the lead's brief: results on a store a run was still writing said of the pairs it had not reached yet
     "never run: a run stopped before them" (--json's help; the table's note: "stopped before it?"). A sweep holds
     its claims while it runs, which results reads: the notes then say the pairs are not run yet and --json says
-    sweep_writing; where no sweep holds any (an eval --db holds none), the note says both what may be."""
+    writing (an eval --db holds its configuration too, test_evaluation.py); where none holds any, the note says both
+    what may be."""
     from svs_torch.evaluation.store import ResultStore
 
     db = tmp_path / "running.sqlite"
@@ -611,18 +612,18 @@ def test_results_say_the_pairs_a_running_sweep_has_not_reached_yet_are_not_run_y
         running.claim_for_a_sweep(["a configuration of the running sweep"])
         starting.claim_for_a_sweep(["a configuration of the running sweep"])
         assert main(["results", str(empty)]) == 0
-        assert capsys.readouterr().out.endswith("no pair run); the sweep writing it now fills it\n")
+        assert capsys.readouterr().out.endswith("no pair run); the run writing it now fills it\n")
         assert main(["results", str(db)]) == 0
         out = capsys.readouterr().out
-        assert (f"note: 1 more pair recorded in {db} has no row in any configuration yet (not run yet: a sweep is "
-                "writing the store now): the means are over the pairs run so far; the running sweep fills those it "
-                "covers" in out), out
+        assert (f"note: 1 more pair recorded in {db} has no row in any configuration yet (not run yet: a sweep or "
+                "an eval --db is writing the store now): the means are over the pairs run so far; the run writing it "
+                "fills those it covers" in out), out
         assert "stopped" not in out
         assert main(["results", str(db), "--json"]) == 0
-        assert json.loads(capsys.readouterr().out)["sweep_writing"] is True
+        assert json.loads(capsys.readouterr().out)["writing"] is True
     assert main(["results", str(db), "--json"]) == 0
     saved = json.loads(capsys.readouterr().out)
-    assert saved["sweep_writing"] is False and saved["pairs_without_rows"] == 1
+    assert saved["writing"] is False and saved["pairs_without_rows"] == 1
     assert main(["results", str(db)]) == 0
     assert "(not run yet by a run still going, or a run stopped before it)" in capsys.readouterr().out
     with pytest.raises(SystemExit):
@@ -633,7 +634,7 @@ def test_results_say_the_pairs_a_running_sweep_has_not_reached_yet_are_not_run_y
 def test_results_of_an_eval_store_without_rows_does_not_send_the_user_to_a_sweep(tmp_path, capsys):
     """Found reviewing bbf0f95 (results' notes of a store a run is still writing): a store with no row yet and no
     sweep writing it still said "running the sweep's command again fills it", where an eval --db, which records its
-    configuration and pairs before its first row and holds no claim, had made it (read while it ran, or after it
+    configuration and pairs before its first row and then held no claim, had made it (read while it ran, or after it
     stopped). It now says what the notes of a store with rows say."""
     from svs_torch.evaluation.store import ResultStore
     from svs_torch.evaluation.sweep import make_sweep_config
@@ -671,7 +672,7 @@ def test_the_figure_of_a_store_a_sweep_is_writing_does_not_say_a_sweep_stopped(r
             assert main(["results", str(db), "--figure", str(tmp_path / "running.png")]) == 0
         assert main(["results", str(db), "--figure", str(tmp_path / "stopped.png")]) == 0
     writing, after = (" ".join(title.split()) for title in titles)
-    assert "stopped" not in writing and "(a sweep is writing the store now)" in writing, writing
+    assert "stopped" not in writing and "(a sweep or an eval --db is writing the store now)" in writing, writing
     assert "(a run still going, or one stopped before the rest: the same command run again fills it)" in after, after
 
 
@@ -1396,8 +1397,8 @@ def test_a_second_sweep_on_a_store_being_written_is_refused(reference, tmp_path)
     sweep = load_sweep(reference[0])
     with ResultStore(db) as other:
         other.claim_for_a_sweep([sweep.configs[1].config_id, "another grid's"])
-        with pytest.raises(InputError, match=f"^db: another sweep is writing {db} and running 1 of this sweep's 3 "
-                                             "configurations; run this one once it has ended"):
+        with pytest.raises(InputError, match=rf"^db: another run \(a sweep or an eval --db\) is writing {db} and "
+                                             "running 1 of this run's 3 configurations; run this one once it has ended"):
             run_sweep(sweep, db, workers=0)
         with ResultStore(db) as beside:  # another grid: held beside it
             beside.claim_for_a_sweep(["a third grid's"])
@@ -1428,16 +1429,17 @@ def test_a_sweep_held_by_another_process_is_refused_until_it_is_killed(reference
     try:
         assert holder.stdout.readline() == "held\n"
         assert main(["sweep", str(sweep_file), "--db", str(db), "--workers", "0"]) == 2
-        assert "error: --db: another sweep is writing" in capsys.readouterr().err
+        assert "error: --db: another run (a sweep or an eval --db) is writing" in capsys.readouterr().err
         assert main(["results", str(db), "--json"]) == 0
-        assert f"note: a sweep is writing {db} now; these are the rows stored so far" in capsys.readouterr().err
+        assert (f"note: a sweep or an eval --db is writing {db} now; these are the rows stored so far"
+                in capsys.readouterr().err)
     finally:
         os.kill(holder.pid, signal.SIGKILL)
         holder.wait()
     assert main(["sweep", str(sweep_file), "--db", str(db), "--workers", "0"]) == 0
     assert "0 rows written by 0 tasks, 12 of 12 stored" in capsys.readouterr().err
     assert main(["results", str(db), "--json"]) == 0
-    assert "a sweep is writing" not in capsys.readouterr().err
+    assert "is writing" not in capsys.readouterr().err
 
 
 def test_a_sweep_in_this_process_gives_back_the_callers_torch_threads(data_dir, tmp_path):
