@@ -30,7 +30,7 @@ from .quantiles import masked_quantile
 
 __all__ = [
     "accuracy_percent", "estimate_depth", "estimate_range", "nearest_obstacle", "object_depths", "point_depths",
-    "rectified_disparity", "slot_labels"
+    "column_sides", "rectified_disparity", "slot_labels"
 ]
 
 
@@ -207,17 +207,29 @@ def _region_geometry(labels: torch.Tensor, region_labels: torch.Tensor,
     # Counted as bytes into int32 (a bool sum goes through int64): 0.15 against 0.44 ms for 8 pairs of two
     # 320×240 slots; counts stay far below 2³¹.
     per_column = members.view(torch.uint8).sum(dim=2, dtype=torch.int32).long()  # (B, N, W)
+    return column_sides(per_column, image_hw[:, 1:], dtype)
+
+
+def column_sides(per_column: torch.Tensor, width: torch.Tensor, dtype: torch.dtype, stray_share: float = 0.0
+                 ) -> tuple[torch.Tensor, ...]:
+    """Area ``(...)``, centroid column and :class:`ObstacleSide` of pixel sets given by their counts per column
+    ``per_column`` ``(..., W)`` (int), in pairs ``width`` px wide (broadcast to ``(...)``): the third of the width
+    the centroid falls in, or the centre where the set reaches across the middle column, its ends taken without
+    ``stray_share`` of its pixels each (0: every pixel counts); NONE where it holds none. The regions' rule
+    (:func:`_region_geometry`) and the near parts' (:mod:`svs_torch.pipeline.near_side`)."""
     area = per_column.sum(dim=-1)
-    columns = torch.arange(labels.shape[-1], device=labels.device, dtype=dtype)
+    columns = torch.arange(per_column.shape[-1], device=per_column.device, dtype=dtype)
     centroid = (per_column.to(dtype) * columns).sum(dim=-1) / area.clamp_min(1).to(dtype)
-    width = image_hw[:, 1:].to(dtype)  # thirds of the pair's own width, in pixel-centre coordinates
+    width = width.to(dtype)  # thirds of the pair's own width, in pixel-centre coordinates
     side = torch.where(centroid < width / 3 - 0.5, int(ObstacleSide.LEFT),
                        torch.where(centroid < 2 * width / 3 - 0.5, int(ObstacleSide.CENTRE), int(ObstacleSide.RIGHT)))
-    present = per_column > 0
-    middle = (width - 1) / 2  # (B, 1): the pair's middle column, in pixel-centre coordinates
-    across = (torch.where(present, columns, torch.inf).amin(dim=-1) <= middle) & (
-        torch.where(present, columns, -torch.inf).amax(dim=-1) >= middle)
-    side = torch.where(across, int(ObstacleSide.CENTRE), side)
+    # The first column past the strays on the left and the last before those on the right (with none: the first
+    # and last columns holding any), counted in float64: whole counts exact far past any image's.
+    running, total = per_column.cumsum(dim=-1).double(), area.unsqueeze(-1).double()
+    first = (running <= stray_share * total).sum(dim=-1)
+    last = (running < (1 - stray_share) * total).sum(dim=-1)
+    middle = (width - 1) / 2  # the pair's middle column, in pixel-centre coordinates
+    side = torch.where((first <= middle) & (last >= middle), int(ObstacleSide.CENTRE), side)
     return area, centroid, torch.where(area > 0, side, int(ObstacleSide.NONE))
 
 

@@ -26,7 +26,8 @@ import dataclasses
 import torch
 
 from ..depth.dense_config import DenseDisparity
-from ..depth.depth_types import DepthResult, ObstacleSide
+from ..depth.depth_types import DepthResult
+from ..depth.sparse import column_sides
 from .near_surface import _in_map_pixels
 
 __all__ = []
@@ -84,33 +85,15 @@ def near_part_sides(depth: DepthResult, dense: DenseDisparity, object_labels: to
         return depth
     part = torch.where(two.view(-1, 1, 1), near, region & cut.view(-1, 1, 1))
     side = objects.side.clone()
-    side[pair, slot] = torch.where(two | cut, _part_side(part, image_hw[pair], disparity.dtype), side[pair, slot])
+    per_column = part.view(torch.uint8).sum(dim=1, dtype=torch.int32)  # (K, W)
+    part_side = column_sides(per_column, image_hw[pair, 1], disparity.dtype, STRAY_SHARE)[2]
+    side[pair, slot] = torch.where(two | cut, part_side, side[pair, slot])
     objects = dataclasses.replace(objects, side=side)
     nearest = depth.nearest
     if nearest is not None:
         at_slot = side.gather(1, nearest.slot.clamp_min(0).view(b, 1)).view(b)
         nearest = dataclasses.replace(nearest, side=torch.where(nearest.valid, at_slot, nearest.side))
     return dataclasses.replace(depth, objects=objects, nearest=nearest)
-
-
-def _part_side(part: torch.Tensor, image_hw: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
-    """``(K,)`` :class:`~svs_torch.depth.ObstacleSide` of each slot's pixels ``part`` ``(K, H, W)``, of a pair of
-    ``image_hw`` ``(K, 2)``, by the regions' rule (:func:`svs_torch.depth.sparse._region_geometry`: the third its
-    centroid falls in, the centre where it reaches across the middle column), its ends taken without
-    :data:`STRAY_SHARE` of its pixels each; NONE where it holds none."""
-    per_column = part.view(torch.uint8).sum(dim=1, dtype=torch.int32)  # (K, W)
-    area = per_column.sum(dim=-1, keepdim=True)
-    columns = torch.arange(part.shape[-1], device=part.device, dtype=dtype)
-    centroid = (per_column.to(dtype) * columns).sum(dim=-1) / area.squeeze(-1).clamp_min(1).to(dtype)
-    width = image_hw[:, 1].to(dtype)  # thirds of the pair's own width, in pixel-centre coordinates
-    side = torch.where(centroid < width / 3 - 0.5, int(ObstacleSide.LEFT),
-                       torch.where(centroid < 2 * width / 3 - 0.5, int(ObstacleSide.CENTRE), int(ObstacleSide.RIGHT)))
-    running = per_column.cumsum(dim=-1).to(dtype)
-    first = (running <= STRAY_SHARE * area).sum(dim=-1)  # the first column past the strays on the left ...
-    last = (running < (1 - STRAY_SHARE) * area).sum(dim=-1)  # ... and the last before those on the right
-    middle = (width - 1) / 2
-    side = torch.where((first <= middle) & (last >= middle), int(ObstacleSide.CENTRE), side)
-    return torch.where(area.squeeze(-1) > 0, side, int(ObstacleSide.NONE))
 
 
 def _count(pixels: torch.Tensor) -> torch.Tensor:
