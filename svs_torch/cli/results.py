@@ -128,6 +128,8 @@ def _unrun_notes(configs: int, pairs: int, writing: bool, db: str, run: int) -> 
     :func:`~svs_torch.evaluation.store_access.sweep_is_writing`), so they are not run yet; else a run stopped before
     them, or one still running that the store cannot tell (where the system has no such locks): the notes said
     "stopped" of the pairs an eval was still running."""
+    from ..evaluation.store_access import WRITERS
+
     notes = []
     for count, noun, where, read in ((configs, "configuration", "", f"the ranking and the best are of the {run} run"),
                                      (pairs, "pair", " in any configuration", "the means are over the pairs run")):
@@ -244,10 +246,6 @@ def run(args: argparse.Namespace) -> int:
         return _run(args)
 
 
-#: Who may be writing a store ``results`` reads: both hold their configurations in it while they run
-#: (:meth:`~svs_torch.evaluation.store.ResultStore.claim_for_a_sweep`).
-WRITERS = "a sweep or an eval --db"
-
 #: What fills a store that has no row yet, where no run is writing it and where one is. Where none is, as the notes
 #: of a store with rows say (_unrun_notes): an eval --db records its configuration and pairs before its first row,
 #: and its store, read while it ran, was to be filled by "running the sweep's command again".
@@ -262,7 +260,7 @@ def _run(args: argparse.Namespace) -> int:
     with imports_without_collection():  # see there: a Ctrl-C meanwhile is raised once they are done
         from ..evaluation.report import best_by_metric, config_summaries, csv_table, plot_results, same_results
         from ..evaluation.store import ResultStore
-        from ..evaluation.store_access import sweep_is_writing
+        from ..evaluation.store_access import WRITERS, sweep_is_writing
         from ..core.files import atomic_output, check_output_file, write_errors_named
 
     # Output files are checked before any work: a bad name fails at once, and nothing is half-written.

@@ -21,6 +21,7 @@ from .metrics import UNRUN_STATUSES, PairEvaluation
 from .pair_spread import MAX_SCENE_BARS, sorted_accuracies
 from .runner import summarize
 from .store import RESULT_COLUMNS, ResultStore
+from .store_access import WRITERS
 
 __all__ = ["METRICS", "best_by_metric", "config_summaries", "csv_table", "distinct_labels", "plot_results",
            "pairs_without_rows", "ranked_group", "ranked_value", "parameter_value", "results_figure", "same_results",
@@ -384,7 +385,7 @@ def _rows_in_title(summaries: Sequence[dict], recorded: int, writing: bool) -> s
     return (f"{count} of {recorded} configurations have rows"
             + (f", {short} of them not on every pair" if short else "")
             + "\neach mean is over the rows stored so far ("
-            + ("a sweep or an eval --db is writing the store now" if writing else
+            + (f"{WRITERS} is writing the store now" if writing else
                "a run still going, or one stopped before the rest: the same command run again fills it") + ")")
 
 

@@ -32,7 +32,7 @@ from typing import IO, TypeVar
 from ..core.errors import InputError
 from ..core.files import check_path_given, check_writable_folder, path_kind
 
-__all__ = ["BUSY_TIMEOUT_S", "SQLITE_CANTOPEN", "SQLITE_READONLY", "STORE_TABLES", "check_schema_version",
+__all__ = ["BUSY_TIMEOUT_S", "SQLITE_CANTOPEN", "SQLITE_READONLY", "STORE_TABLES", "WRITERS", "check_schema_version",
            "check_store_path", "claim_configs", "foreign_tables", "raise_if_disk_failed", "read_only_error",
            "sweep_is_writing", "unreadable_beside_writer", "while_locked"]
 
@@ -103,7 +103,7 @@ def claim_configs(path: Path, config_ids: Iterable[str]) -> IO | None:
             handle.close()
             if error.errno not in (errno.EAGAIN, errno.EWOULDBLOCK, errno.EACCES):  # no locks there (see _lock)
                 return None
-            raise InputError(f"db: another run (a sweep or an eval --db) is writing {path}; run this one once it has "
+            raise InputError(f"db: another run ({WRITERS}) is writing {path}; run this one once it has "
                              "ended (it then runs only what is missing), or give another store") from None
     # Opened to write (a write lock needs it), never written.
     handle = open(path, "r+b")  # noqa: SIM115 (held open until the store closes)
@@ -112,14 +112,18 @@ def claim_configs(path: Path, config_ids: Iterable[str]) -> IO | None:
     _lock(fcntl, handle, ofd, _CLAIMING_BYTE, fcntl.F_UNLCK)
     if held:
         handle.close()
-        raise InputError(f"db: another run (a sweep or an eval --db) is writing {path} and running {len(held)} of "
+        raise InputError(f"db: another run ({WRITERS}) is writing {path} and running {len(held)} of "
                          f"this run's {len(wanted)} configuration{'s' * (len(wanted) != 1)}; run this one once it has "
                          "ended (it then runs only what is missing), or give another store")
     return handle
 
 
+#: Who holds configurations in a store while it runs (:func:`claim_configs`), as the refusals and ``results`` say.
+WRITERS = "a sweep or an eval --db"
+
+
 def sweep_is_writing(path: str | Path) -> bool:
-    """Whether a sweep or an eval --db holds configurations in the store ``path`` now (False where that cannot be
+    """Whether :data:`WRITERS` hold configurations in the store ``path`` now (False where that cannot be
     told: no OFD locks, a file that cannot be opened). Call it before the store is opened in this process: closing a
     handle of the file drops the process's own SQLite locks on it."""
     try:
