@@ -127,8 +127,9 @@ def kornia_loop(data: dict, confidence: float, seed: int) -> tuple[torch.Tensor,
     from kornia.geometry.ransac import RANSAC
 
     left, right = data["left"].float(), data["right"].float()
+    # max_samples is the budget (it overrides batch_size x max_iter); the hypotheses are made 256 at a time.
     ransac = RANSAC("fundamental", inl_th=THRESHOLD_PX, confidence=confidence, max_samples=MAX_ITERATIONS,
-                    batch_size=min(256, MAX_ITERATIONS), max_iter=-(-MAX_ITERATIONS // 256), seed=seed)
+                    batch_size=256, seed=seed)
     models = torch.full((len(left), 3, 3), torch.nan, dtype=torch.float64)
     inliers = torch.zeros(left.shape[:2], dtype=torch.bool)
     with torch.no_grad():
