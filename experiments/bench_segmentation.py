@@ -124,24 +124,28 @@ def main() -> None:
     left, right = load_pairs(Path(args.data), 32)
     results = bench(left, right, args.repeats)
     print(f"threads {args.threads}, {SIZE_WH[0]}x{SIZE_WH[1]}, median of {args.repeats} runs (min-max)")
+    ratios = {}  # the ratios printed, kept in the JSON too (a script reads them, not works them out)
     for b in (1, 32):
         ours = results[f"segment_pairs_svs_torch_B{b}"]["median_ms"] / b
         theirs = results[f"segment_pairs_opencv_loop_B{b}"]["median_ms"] / b
+        ratios[f"segment_pairs_B{b}_svs_torch_over_opencv"] = round(ours / theirs, 3)
         print(f"segmentation  B={b:2d}: svs_torch {ours:7.3f} ms/pair   OpenCV loop {theirs:7.3f} ms/pair   "
               f"ratio svs_torch/OpenCV {ours / theirs:5.2f}")
     for b in (1, 32):
         images = 2 * b
         ours = results[f"components_images_svs_torch_B{b}"]["median_ms"] / images
         theirs = results[f"components_images_opencv_loop_B{b}"]["median_ms"] / images
+        ratios[f"components_images_B{b}_svs_torch_over_opencv"] = round(ours / theirs, 3)
         print(f"components    B={b:2d}: svs_torch {ours:7.3f} ms/image  OpenCV loop {theirs:7.3f} ms/image  "
               f"ratio svs_torch/OpenCV {ours / theirs:5.2f}")
     for name in ("unionfind", "maxpool100"):
         kornia_ms = results[f"components_images_kornia_{name}_B1"]["median_ms"] / 2
         ours = results["components_images_svs_torch_B1"]["median_ms"] / 2
         runs = results[f"components_images_kornia_{name}_B1"]["runs"]  # (its own count: each run is slow)
+        ratios[f"components_images_B1_kornia_{name}_over_svs_torch"] = round(kornia_ms / ours, 3)
         print(f"components    B= 1: kornia {name:10s} {kornia_ms:8.3f} ms/image  ratio kornia/svs_torch "
               f"{kornia_ms / ours:6.1f}  (median of {runs} runs)")
-    report = {"metadata": run_metadata(args.threads, size_wh=list(SIZE_WH)), "results": results}
+    report = {"metadata": run_metadata(args.threads, size_wh=list(SIZE_WH)), "results": results, "ratios": ratios}
     if args.json:
         write_text_whole(args.json, json.dumps(report, indent=2))
 

@@ -1072,6 +1072,76 @@ def test_bench_differentiable_prints_and_writes_each_configurations_ratio_to_the
     assert re.search(r"otsu_differentiable_over_hard +3\.00", text)
 
 
+def test_the_bench_experiments_write_the_ratios_they_print_to_their_json(data_dir, tmp_path, monkeypatch, capsys):
+    """Found by a look at the benchmarks' JSON: bench_features, bench_dense, bench_pipeline, bench_ransac and
+    bench_segmentation printed each row's ratio to its rival ('x SIFT', 'x StereoBM time', 'x OpenCV pairs/s',
+    'vs FM_RANSAC', 'ratio svs_torch/OpenCV') but wrote the medians alone, so a script comparing two runs had to
+    work the ratios out again, with the rule of each table. Each JSON now holds the ratios the table prints."""
+    import itertools
+    import types
+
+    import bench_dense
+    import bench_features
+    import bench_pipeline
+    import bench_ransac
+    import bench_segmentation
+
+    def fake_timed(fn, repeats, pairs=1):  # a new median each call, without running the work
+        median = next(medians)
+        return {"median_ms": median, "min_ms": median, "max_ms": median, "ms_per_pair": median / pairs,
+                "runs": repeats, "pairs": pairs}
+
+    images = torch.rand(32, 1, 60, 80, generator=torch.Generator().manual_seed(0))
+    for module in (bench_pipeline, bench_features, bench_dense, bench_segmentation):
+        monkeypatch.setattr(module, "timed", fake_timed)
+    for module in (bench_pipeline, bench_features, bench_segmentation):
+        monkeypatch.setattr(module, "load_pairs", lambda data, count: (images[:count], images[:count].flip(-1)))
+    monkeypatch.setattr(bench_dense, "estimate_dense_disparity", lambda *args: types.SimpleNamespace(num_disparities=8))
+    saved = {}
+    for name, module, args in (("features", bench_features, []), ("pipeline", bench_pipeline, []),
+                               ("segmentation", bench_segmentation, [])):
+        medians = itertools.count(10.0, 7.0)
+        saved[name] = tmp_path / f"{name}.json"
+        monkeypatch.setattr(sys, "argv", ["bench.py", "--data", str(data_dir), "--repeats", "1", "--threads", "1",
+                                          "--json", str(saved[name])])
+        module.main()
+    medians = itertools.count(10.0, 7.0)
+    saved["dense"] = tmp_path / "dense.json"
+    bench_dense.main(["--data", str(data_dir), "--repeats", "1", "--threads", "1", "--batch", "4", "--json",
+                      str(saved["dense"])])
+    text = capsys.readouterr().out
+    report = {name: json.loads(path.read_text()) for name, path in saved.items()}
+
+    results = report["features"]["results"]
+    sift = results["opencv_sift"]["ms_per_pair"]
+    assert report["features"]["time_x_opencv_sift"] == {
+        key: pytest.approx(row["ms_per_pair"] / sift, abs=1e-3) for key, row in results.items()}
+    assert f"x SIFT {report['features']['time_x_opencv_sift']['opencv_orb']:5.2f}" in text
+    results = report["pipeline"]["results"]
+    base = results["opencv_loop"]["ms_per_pair"]
+    assert report["pipeline"]["speedup_vs_opencv_loop"] == {
+        key: pytest.approx(base / row["ms_per_pair"], abs=1e-3) for key, row in results.items()}
+    results = report["dense"]["results"]
+    assert report["dense"]["time_x_stereobm"] == {key: pytest.approx(
+        row["ms_per_pair"] / results[key.split(" | ")[0] + " | OpenCV StereoBM loop"]["ms_per_pair"], abs=1e-3)
+        for key, row in results.items()}
+    results, ratios = report["segmentation"]["results"], report["segmentation"]["ratios"]
+    assert ratios["segment_pairs_B32_svs_torch_over_opencv"] == pytest.approx(
+        results["segment_pairs_svs_torch_B32"]["median_ms"] / results["segment_pairs_opencv_loop_B32"]["median_ms"],
+        abs=1e-3)
+    assert len(ratios) == 6 and all(value > 0 for value in ratios.values())
+
+    monkeypatch.setattr(bench_ransac, "timed", lambda fn, repeats: (
+        {"median_ms": next(medians), "min_ms": 1.0, "max_ms": 1.0, "runs": repeats}, fn()))
+    medians = iter([40.0, 80.0, 20.0, 10.0, 160.0])  # batched, per pair, FM_RANSAC, MAGSAC, kornia
+    data = bench_ransac.synthetic_matches(2, 40, bench_ransac.SCENARIOS["typical"]["outliers"], 0.5,
+                                          torch.Generator().manual_seed(0))
+    rows = bench_ransac.bench_scenario(data, 0.99, 1, 0)
+    assert rows["svs_torch_batched"]["x_rivals"] == {"cv2_FM_RANSAC": 0.5, "cv2_USAC_MAGSAC": 0.25,
+                                                     "kornia_RANSAC": 4.0}
+    assert rows["kornia_RANSAC"]["x_rivals"]["kornia_RANSAC"] == 1.0
+
+
 def test_bench_ransac_records_the_runs_each_median_is_of():
     """Found by an audit: bench_ransac.py printed 'median of 5 runs' over its table while svs_torch_per_pair's was of
     2 (repeats // 2), the JSON recording 'repeats': 5 alone. Each row now records its runs, and the table's head
