@@ -60,9 +60,9 @@ examples:
 
 --json: one JSON object per pair, then one summary object as the last line, with pairs, failed,
 acc_r_min_pct, acc_r_max_pct, acc_objects_pct (over the pairs with their own calibration), nominal_calibration
-(the others, apart), pairs_per_s (loading included), the mean disparity errors, the mean stereo metrics (over
-every pair that has them: they are disparities, whatever the calibration), the failures, and what ran: preset,
-overrides, size and config (every setting in effect). Pixels: the
+(the others, apart: their count, means and first 100 names), pairs_per_s (loading included), the mean disparity
+errors, the mean stereo metrics (over every pair that has them: they are disparities, whatever the calibration),
+the failures, and what ran: preset, overrides, size and config (every setting in effect). Pixels: the
 dense_* and sparse_* errors are in the pixels the pipeline ran at (--size), the map_* and kept_* metrics in
 the data's native pixels, at the published thresholds. --db adds the
 rows to a results store (as svs-depth sweep does; a pair already stored for the same configuration keeps its

@@ -285,7 +285,8 @@ def summarize(evaluations: Sequence[PairEvaluation], wall_s: float | None = None
     those with ground truth and their data's own calibration whose accuracy counts: every such pair, a failed
     one at 0 % (a failed pair whose segmentation kept nothing has no object truth, and still counts 0 %).
     ``acc_*_pct`` are means over the scored pairs; pairs scored with a nominal calibration (``calibrated``
-    False: the data ship none) are kept apart in ``nominal_calibration`` (their count, names and means);
+    False: the data ship none) are kept apart in ``nominal_calibration`` (their count ``scored``, the first
+    :data:`UNSCORED_NAMES` of their names in sorted order, and their means);
     disparity errors are means over the pairs that have them; ``pairs_per_s`` is pairs over
     ``wall_s`` (the whole run: loading included) when given, else over the summed pipeline time;
     ``pipeline_s_per_pair`` is the mean pipeline time of the pairs it ran on. The stereo metrics

@@ -20,7 +20,8 @@ from .stereo_metrics import STEREO_FIELDS, STEREO_SCOPES
 __all__ = ["RunningSummary", "UNSCORED_NAMES"]
 
 #: The most names a summary's ``unscored`` lists: a run over thousands of a camera's pairs (no truth) is not a list of
-#: thousands of names in every summary.
+#: thousands of names in every summary. Its ``nominal_calibration`` lists as many: 2 288 KITTI pairs scored with a
+#: nominal calibration were 95 % of a 63 kB summary line, in every row of a sweep's store too.
 UNSCORED_NAMES = 100
 
 #: The accuracies averaged over the scored pairs (a failed one as 0 %), and apart over the nominal ones.
@@ -72,7 +73,8 @@ class RunningSummary:
         self.failures: list[tuple[str, str, str | None]] = []
         self.scored = {key: _ExactSum() for key in ACCURACIES}
         self.nominal = {key: _ExactSum() for key in ACCURACIES}
-        self.nominal_names: list[str] = []
+        self.nominal_count = 0
+        self.nominal_first: list[str] = []  # the UNSCORED_NAMES names first in sorted order, like unscored_first
         self.unscored = 0
         self.unscored_first: list[str] = []  # the UNSCORED_NAMES names first in sorted order, as summarize's
         self.means = {key: _ExactSum() for key in MEANS}
@@ -90,7 +92,9 @@ class RunningSummary:
             for key in ACCURACIES:
                 group[key].add(getattr(e, key) or 0.0)
             if e.calibrated is False:
-                self.nominal_names.append(e.name)
+                self.nominal_count += 1
+                bisect.insort(self.nominal_first, e.name)
+                del self.nominal_first[UNSCORED_NAMES:]
         if e.ok and e.acc_r_min_pct is None:
             self.unscored += 1
             bisect.insort(self.unscored_first, e.name)
@@ -111,7 +115,7 @@ class RunningSummary:
         return {
             "pairs": self.pairs, "failed": len(self.failures), "scored": self.scored["acc_r_min_pct"].count,
             **{key: self.scored[key].mean() for key in ACCURACIES},
-            "nominal_calibration": {"scored": len(self.nominal_names), "names": sorted(self.nominal_names),
+            "nominal_calibration": {"scored": self.nominal_count, "names": list(self.nominal_first),
                                     **{key: self.nominal[key].mean() for key in ACCURACIES}},
             "unscored": {"count": self.unscored, "names": list(self.unscored_first)},
             **{key: self.means[key].mean() for key in MEANS[:7]},

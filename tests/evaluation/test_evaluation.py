@@ -974,6 +974,29 @@ def test_the_summary_gathered_pair_by_pair_is_the_lists_to_the_bit():
             assert running.summary(2.0) == summarize(rows[:number], wall_s=2.0)
 
 
+def test_a_summary_names_at_most_the_first_hundred_pairs_scored_with_a_nominal_calibration():
+    """Found by a look at a long run's output: eval --json's summary listed every pair scored with a nominal
+    calibration by name (2 288 KITTI pairs were 95 % of a 63 kB summary line, in every row of a sweep's store too),
+    while its ``unscored`` lists the first 100. It now lists the first 100 names in sorted order, as ``unscored``
+    does, beside their count, gathered pair by pair in constant memory."""
+    from svs_torch.evaluation import PairEvaluation
+    from svs_torch.evaluation.running_summary import UNSCORED_NAMES, RunningSummary
+
+    rows = [PairEvaluation(f"kitti/{(37 * i) % 250:06d}_10", "OK", calibrated=False, has_truth=True, acc_r_min_pct=90.0,
+                           acc_r_max_pct=80.0, acc_objects_pct=85.0, time_s=0.1) for i in range(250)]
+    rows.append(PairEvaluation("Teddy", "OK", calibrated=True, has_truth=True, acc_r_min_pct=99.0, acc_r_max_pct=98.0,
+                               acc_objects_pct=97.0, time_s=0.1))
+    summary = summarize(rows)
+    nominal = summary["nominal_calibration"]
+    assert nominal["scored"] == 250 and summary["scored"] == 1
+    assert nominal["names"] == sorted(e.name for e in rows[:250])[:UNSCORED_NAMES] and UNSCORED_NAMES == 100
+    assert nominal["acc_objects_pct"] == 85.0
+    running = RunningSummary()
+    for row in rows:
+        running.add(row)
+    assert len(running.nominal_first) == UNSCORED_NAMES and running.summary() == summary
+
+
 @pytest.mark.skipif(not (sys.platform.startswith("linux")), reason="needs open-file-description locks (Linux)")
 def test_eval_db_holds_its_configuration_while_it_runs_so_results_says_the_rest_is_not_run_yet(data_dir, tmp_path,
                                                                                                  capsys, monkeypatch):
