@@ -64,7 +64,9 @@ def _smooth(costs: torch.Tensor, minimum: tuple[torch.Tensor, torch.Tensor], con
     if not bool(inside.all()):
         picked = picked.masked_fill(~inside.unsqueeze(1), torch.inf)
     if intensity_costs is not None:
-        picked = picked + config.smoothing_intensity_weight * intensity_costs(index)
+        # In place on the fresh intensity volume: the same two float32 operations (the weight's product, then the
+        # sum), without two more volumes (a noisy 320x240 frame's coarse retry, 52 x 115 x 262: 1.8 -> 0.7 ms).
+        picked = intensity_costs(index).mul_(config.smoothing_intensity_weight).add_(picked)
         # The penalties in units of the summed costs' residual, over the same wanted pixels.
         residual = residual.index_copy(0, index, pair_residual_levels(
             picked.amin(dim=1)[..., core], wanted[index], config.window_size))
