@@ -42,7 +42,7 @@ from ..segmentation.components import connected_components_with_stats
 from ..segmentation.threshold import otsu_threshold_level
 from .config import PipelineConfig
 from .ranging import surface_pixels_of
-from .stages import warp_labels
+from .stages import warp_labels, warped_where
 
 __all__ = []
 
@@ -166,9 +166,7 @@ def _split_objects(disparity: torch.Tensor, valid: torch.Tensor, position: torch
 def _in_map_pixels(object_labels: torch.Tensor, rectified: torch.Tensor, H_left: torch.Tensor) -> torch.Tensor:
     """``object_labels`` ``(B, 1, H, W)`` in the dense map's pixels: warped by ``H_left`` (nearest) where
     ``rectified``, exactly as :func:`svs_torch.pipeline.ranging._dense_depth` warps the labels it measures over."""
-    if not bool(rectified.any()):
-        return object_labels
-    return torch.where(rectified.view(-1, 1, 1, 1), warp_labels(object_labels, H_left), object_labels)
+    return warped_where(object_labels, H_left, rectified, warp_labels)
 
 
 def _in_input_pixels(cut_map_labels: torch.Tensor, map_labels: torch.Tensor, object_labels: torch.Tensor,
@@ -182,7 +180,7 @@ def _in_input_pixels(cut_map_labels: torch.Tensor, map_labels: torch.Tensor, obj
     # Both label images back in one warp: the label before the cut, and in the lowest bit whether it stayed.
     coded = map_labels * 2 + (cut_map_labels == map_labels).long()
     # inv_ex: a rectified pair's homography is invertible; a hostile one must not stop the batch here.
-    back = warp_labels(coded, torch.linalg.inv_ex(H_left.to(torch.float64)).inverse)
+    back = warped_where(coded, torch.linalg.inv_ex(H_left.to(torch.float64)).inverse, rectified, warp_labels)
     lost = (back // 2 == object_labels) & (back % 2 == 0) & (object_labels > 0)
     kept = torch.where(lost, torch.zeros_like(object_labels), object_labels)
     return torch.where(rectified.view(-1, 1, 1, 1), kept, cut_map_labels)

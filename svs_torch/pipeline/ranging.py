@@ -27,7 +27,7 @@ from ..geometry.row_alignment import fit_row_alignment
 from ..segmentation.segment import kept_regions_mask
 from .beyond_range import unrange_objects_beyond_search
 from .config import PipelineConfig
-from .stages import gaussian_smoothed, warp_labels
+from .stages import gaussian_smoothed, warp_labels, warped_where
 
 __all__ = []
 
@@ -87,15 +87,12 @@ def _dense_depth(batch: StereoBatch, seg: StereoSegmentation, sparse: DepthResul
     verified (``fundamental_ok`` and enough inliers the dense map confirms) and the counts of agreeing and of
     measured inliers, ``(B,)`` each."""
     left, right, labels = batch.left, batch.right, seg.left.labels
-    if bool(rectified.any()):
-        pick = rectified.view(-1, 1, 1, 1)
-        left = torch.where(pick, warp_views(left, H_left), left)
-        right = torch.where(pick, warp_views(right, H_right), right)
+    if bool(rectified.any()):  # (only the rectified pairs are warped: warped_where)
+        left = warped_where(left, H_left, rectified, warp_views)
+        right = warped_where(right, H_right, rectified, warp_views)
         # By nearest neighbour, as exact small integers in float64, with whether the pixel is in its object
         # (not a border pixel object_labels left out) in the lowest bit: one warp for both label images.
-        coded = labels * 2 + (object_labels == labels).long()
-        moved = warp_labels(coded, H_left)
-        coded = torch.where(pick, moved, coded)
+        coded = warped_where(labels * 2 + (object_labels == labels).long(), H_left, rectified, warp_labels)
         labels = coded // 2
         object_labels = torch.where(coded % 2 == 1, labels, torch.zeros_like(labels))
     # One mask per kept object, so the search range covers a small object as well as a big one.

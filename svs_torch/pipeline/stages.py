@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
 
 import torch
 from torch import nn
@@ -44,6 +45,23 @@ def warp_labels(labels: torch.Tensor, homographies: torch.Tensor) -> torch.Tenso
     by nearest neighbour, as exact small integers in float64 and rounded back: int64, 0 outside. Not
     differentiable."""
     return warp_rectified(labels.to(torch.float64), homographies.to(torch.float64), mode="nearest").round().long()
+
+
+def warped_where(images: torch.Tensor, homographies: torch.Tensor, pick: torch.Tensor,
+                 warp: Callable[[torch.Tensor, torch.Tensor], torch.Tensor]) -> torch.Tensor:
+    """``images`` ``(B, ...)`` with the pairs ``pick`` ``(B,)`` bool replaced by ``warp`` of their images and
+    ``homographies`` ``(B, 3, 3)`` (:func:`warp_views`, :func:`warp_labels`), the others as they are: only those
+    pairs are warped. A batch with one rectified pair warped all of its pairs to keep one: the dense stage and the
+    near-surface, side and floor rules, six warps of 8 pairs at 320x240 where one of them was rectified (a row-
+    aligned pair of the bench's real list), about 2 ms a pair of `estimate --pairs`. Each pair's warp is its own
+    (kornia warps a batch pair by pair: the same values alone), so the result is the same. Not differentiable
+    (the hard path's)."""
+    if not bool(pick.any()):
+        return images
+    if bool(pick.all()):
+        return warp(images, homographies)
+    index = pick.nonzero().flatten()
+    return images.index_copy(0, index, warp(images.index_select(0, index), homographies.index_select(0, index)))
 
 
 def gaussian_smoothed(images: torch.Tensor, sigma_px: float) -> torch.Tensor:

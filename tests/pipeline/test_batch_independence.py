@@ -264,3 +264,41 @@ def test_each_ransac_scoring_keeps_a_pair_independent_of_its_batch(data_dir: Pat
         alone = estimate_obstacle_depth(pair, config)
         batched = estimate_obstacle_depth(collate_stereo_batches([venus, pair], mode="pad"), config)
     _assert_rows_equal(_pair_tensors(batched, 1, (240, 320)), _pair_tensors(alone, 0, (240, 320)), scene)
+
+
+def test_a_batch_warps_only_its_rectified_pairs_and_each_equals_the_pair_alone(data_dir: Path, monkeypatch):
+    """Found by a profile of `estimate --pairs`: a batch holding one rectified pair (a row-aligned one of the
+    bench's real list) warped all of its pairs, six times (the views and label images the dense stage, the near
+    surface, the side and the floor rule read), to keep that one: about 2 ms a pair of the whole run. Now only the
+    rectified pairs are warped (pipeline.stages.warped_where). Four real pairs at 320x240, two with the right view
+    turned (rectified): every warp takes at most those two, and every tensor of each pair's result equals the pair's
+    alone."""
+    import numpy as np
+
+    import svs_torch.geometry.rectification as rectification
+    import svs_torch.pipeline.stages as stages
+    from svs_torch.data.rig_deviation import RigDeviation, deviate_view
+
+    scenes = sorted((data_dir / "middlebury_eval3_Q").iterdir())[:4]
+    pairs = [resize_stereo_batch(load_stereo_pair(scene), (320, 240)) for scene in scenes]
+    for index, deviation in ((1, RigDeviation(roll_deg=2.0)), (3, RigDeviation(shift_y_fraction=0.03))):
+        right = (pairs[index].right[0, 0].numpy() * 255).round().astype(np.uint8)
+        moved = deviate_view(right, deviation, float(pairs[index].focal_px[0]))
+        pairs[index] = dataclasses.replace(pairs[index], right=torch.from_numpy(moved / 255.0).float()[None, None])
+    warped, warp = [], rectification.warp_rectified
+
+    def counted(images, homographies, mode="bilinear"):
+        warped.append(images.shape[0])
+        return warp(images, homographies, mode)
+
+    monkeypatch.setattr(rectification, "warp_rectified", counted)
+    monkeypatch.setattr(stages, "warp_rectified", counted)
+    config = PipelineConfig().for_guide()  # (its floor rule warps the labels too)
+    with torch.inference_mode():
+        batched = estimate_obstacle_depth(collate_stereo_batches(pairs, mode="pad"), config)
+        assert batched.rectified.tolist() == [False, True, False, True]
+        assert warped and max(warped) <= 2, warped
+        for index, pair in enumerate(pairs):
+            alone = estimate_obstacle_depth(pair, config)
+            _assert_rows_equal(_pair_tensors(batched, index, (240, 320)), _pair_tensors(alone, 0, (240, 320)),
+                               scenes[index].name)
