@@ -54,8 +54,8 @@ def warped_where(images: torch.Tensor, homographies: torch.Tensor, pick: torch.T
     pairs are warped. A batch with one rectified pair warped all of its pairs to keep one: the dense stage and the
     near-surface, side and floor rules, six warps of 8 pairs at 320x240 where one of them was rectified (a row-
     aligned pair of the bench's real list), about 2 ms a pair of `estimate --pairs`. Each pair's warp is its own
-    (kornia warps a batch pair by pair: the same values alone), so the result is the same. Not differentiable
-    (the hard path's)."""
+    (kornia warps a batch pair by pair: the same values alone), so the result is the same. Gradients flow as
+    through ``warp``, to the picked pairs' images; the hard path's (the differentiable pass keeps its torch.where)."""
     if not bool(pick.any()):
         return images
     if bool(pick.all()):

@@ -91,13 +91,14 @@ __attribute__((noinline)) static void add_row(int64_t n, const float *restrict c
 }
 
 /* The block's costs (rows y0 .. y0 + n - 1 of plane ``volume``, D planes of ``plane`` floats, rows of W) into
- * ``block`` (W x D x ROWS); lanes past n get 0 (their paths are made and never read). Each source row is read
- * in order, a tile of TILE columns of the block's ROWS rows at a time: its TILE lines of the block are then written
- * whole while they stay in the first-level cache. Read a tile of columns of all D x ROWS rows at a time, the reads
- * missed the cache at nearly every line (more streams than the prefetchers follow); a disparity's W lines of the
- * block at once (262 columns of a coarse retry, D x ROWS x 4 bytes apart: 52 disparities put them in 16 of the
- * cache's 64 sets) were evicted before their ROWS rows were all written, and the transpose took 1.9 of the
- * kernel's 3.3 ms on that volume (two threads); with tiles, 0.6. Data moved, never computed: the same values. */
+ * ``block`` (W x D x ROWS); lanes past n get 0 (their paths are made and never read). Each source row is read in
+ * order, TILE columns at a time for the ROWS rows of one disparity, so that the TILE lines of the block they fill
+ * are written whole while in the first-level cache. Two orders were slower: a tile of columns of all D x ROWS rows
+ * at once missed the cache at nearly every read (more streams than the prefetchers follow); a disparity's whole
+ * rows at once wrote W lines of the block D x ROWS x 4 bytes apart, which at 52 disparities (a coarse retry's
+ * 52 x 115 x 262 volume) fall in 16 of the cache's 64 sets and were evicted before their ROWS rows were all
+ * written: the transpose took 1.9 of the kernel's 3.3 ms there (two threads), 0.6 with tiles. Data moved, never
+ * computed: the same values. */
 static void transpose_in(const float *volume, int64_t D, int64_t W, int64_t plane, int64_t n, float *block) {
     for (int64_t d = 0; d < D; ++d)
         for (int64_t x0 = 0; x0 < W; x0 += TILE) {
