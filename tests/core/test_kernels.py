@@ -973,6 +973,32 @@ def test_region_medians_kernel_equals_the_sorting_path(generator, monkeypatch, t
                     assert fused[0][0, 0] == member.sort().values[(member.numel() - 1) // 2]
 
 
+@pytest.mark.skipif(not kernels.available("label_counts"), reason="no C compiler")
+@pytest.mark.parametrize("threads", [1, 3])
+def test_label_counts_kernel_equals_the_scatter_path(generator, monkeypatch, threads):
+    """Each region's flagged pixels counted in one pass (segmentation/kernels/label_counts.c) against the torch path's
+    scatter-add of the flags made int64, with empty batches, empty images, no region, labels no pixel holds and
+    every flag set or none; a label outside [0, slots] is refused by name, as the scatter refused it."""
+    from svs_torch.segmentation.nearness_regions import _label_counts
+
+    for b, h, w in ((3, 24, 40), (1, 1, 1), (0, 5, 5), (2, 0, 7), (8, 60, 80)):
+        for slots in (0, 1, 6, 300):
+            labels = torch.randint(0, slots + 1, (b, 1, h, w), generator=generator)
+            for flags in (torch.rand(b, 1, h, w, generator=generator) < 0.3, torch.ones(b, 1, h, w, dtype=torch.bool),
+                          torch.zeros(b, 1, h, w, dtype=torch.bool)):
+                fused = _with_threads(threads, _label_counts, labels, flags, slots)
+                eager = _torch_path(monkeypatch, _label_counts, labels, flags, slots)
+                assert fused.dtype == torch.int64 and fused.shape == (b, slots)
+                assert torch.equal(fused, eager), (b, h, w, slots)
+    labels = torch.randint(0, 4, (2, 1, 6, 6), generator=generator)
+    flags = torch.ones(2, 1, 6, 6, dtype=torch.bool)
+    for bad in (7, -1):
+        labels[1, 0, 2, 3] = bad
+        with pytest.raises(InputError, match=r"^labels: expected labels in \[0, 4\], got values from"):
+            segmentation_kernels.label_counts(labels.flatten(1), flags.flatten(1), 4)
+    assert segmentation_kernels.label_counts(labels.flatten(1).int(), flags.flatten(1), 4) is None
+
+
 @pytest.mark.skipif(not kernels.available("labelled_select"), reason="no C compiler")
 def test_row_quantile_equals_torch_quantile(generator):
     """The nearness rule's percentiles by selection: ``torch.quantile``'s numbers, to the bit."""

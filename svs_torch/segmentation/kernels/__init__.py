@@ -15,13 +15,14 @@ from ...core.kernels import FLOAT, INT, POINTER, available, declare, load, on_cp
 from ...core.kernels.checks import check_rows, settings_table
 from ...core.mask_reductions import has_nan
 
-__all__ = ["GROUND_PLANE_SETTINGS", "available", "find_runs", "gray_levels", "ground_plane_fit", "label_runs", "load",
-           "median_filter", "nearness_split", "region_interiors", "shift_regions"]
+__all__ = ["GROUND_PLANE_SETTINGS", "available", "find_runs", "gray_levels", "ground_plane_fit", "label_counts",
+           "label_runs", "load", "median_filter", "nearness_split", "region_interiors", "shift_regions"]
 
 declare({
     "find_runs": ([POINTER] * 2 + [INT] * 2 + [POINTER] * 3 + [INT], ctypes.c_int),
     "gray_levels": ([POINTER] + [INT] * 2 + [POINTER] * 2 + [INT], ctypes.c_int),
     "label_runs": ([POINTER] * 2 + [INT] * 5 + [POINTER] * 3 + [INT], ctypes.c_int),
+    "label_counts": ([POINTER] * 2 + [INT] * 3 + [POINTER, INT], ctypes.c_int),
     "median_filter": ([POINTER] + [INT] * 4 + [POINTER, INT], ctypes.c_int),
     "shift_regions": ([POINTER] * 3 + [INT] * 4 + [POINTER, INT], ctypes.c_int),
     "region_interiors": ([POINTER] * 3 + [INT] * 5 + [FLOAT, POINTER, INT], ctypes.c_int),
@@ -128,6 +129,29 @@ def label_runs(start: torch.Tensor, end: torch.Tensor, batch: int, height: int, 
 #: The largest window side :func:`median_filter` takes: over 7×7 each step of its tracked median reads all K² values
 #: of the window (up to 7×7 a selection network runs instead), so a larger window is left to the torch path.
 MAX_MEDIAN_WINDOW = 15
+
+
+def label_counts(labels: torch.Tensor, flags: torch.Tensor, slots: int) -> torch.Tensor | None:
+    """:func:`svs_torch.segmentation.nearness_regions._label_counts` in one pass a pair (see the C source):
+    ``labels`` ``(B, P)`` int64 in ``[0, slots]``, ``flags`` ``(B, P)`` bool → ``(B, slots)`` int64, how many
+    flagged pixels each label 1 … ``slots`` holds, the torch path's counts exactly. None when the kernel is not
+    available or the inputs are of another kind; a label outside ``[0, slots]`` is named."""
+    b = check_shape(labels, "labels", ["B", "P"])["B"]
+    check_shape(flags, "flags", list(labels.shape))
+    check_count(slots, "slots", 0)
+    if not (on_cpu(torch.int64, labels) and on_cpu(torch.bool, flags)):
+        return None
+    library = load("label_counts")
+    if library is None:
+        return None
+    labels, flags = labels.contiguous(), flags.contiguous()
+    counts = torch.empty(b, slots, dtype=torch.int64)
+    status = library.label_counts(labels.data_ptr(), flags.data_ptr(), b, labels.shape[1], slots, counts.data_ptr(),
+                                  torch.get_num_threads())
+    if status == -2:
+        raise InputError(f"labels: expected labels in [0, {slots}], got values from {int(labels.min())} to "
+                         f"{int(labels.max())}")
+    return None if status != 0 else counts
 
 
 def median_filter(image: torch.Tensor, window: int) -> torch.Tensor | None:
