@@ -52,7 +52,7 @@ from ..depth.pooling import mean_pool
 from ..depth.winner import equiangular_offset
 from ..geometry.rectification import warp_rectified, warp_views
 from .soft_slots import nearest_at_hard_slot, range_at_hard_slots
-from .stages import warp_labels
+from .stages import warp_labels, warped_where
 
 __all__ = ["BAND_HALF_WIDTH", "band_mean", "differentiable_depth", "quantize_straight_through", "soft_dense_depth",
            "subpixel_disparity"]
@@ -384,12 +384,11 @@ def differentiable_depth(left: torch.Tensor, right: torch.Tensor, labels: torch.
     percentile is taken over (:func:`soft_dense_depth`). Differentiable w.r.t. both images, the logits, the
     calibration and the homographies."""
     weights = torch.ones_like(left) if logits is None else torch.sigmoid(logits).to(left.dtype)
-    if bool(rectified.any()):
-        pick = rectified.view(-1, 1, 1, 1)
+    if bool(rectified.any()):  # only the rectified pairs warped, as the hard dense stage does (warped_where)
         H_left, H_right = H_left.to(left.dtype), H_right.to(left.dtype)
-        left = torch.where(pick, warp_views(left, H_left), left)
-        right = torch.where(pick, warp_views(right, H_right), right)
-        weights = torch.where(pick, warp_rectified(weights, H_left), weights)
-        labels = torch.where(pick, warp_labels(labels, H_left.detach()), labels)
+        left = warped_where(left, H_left, rectified, warp_views)
+        right = warped_where(right, H_right, rectified, warp_views)
+        weights = warped_where(weights, H_left, rectified, warp_rectified)
+        labels = warped_where(labels, H_left.detach(), rectified, warp_labels)
     return soft_dense_depth(left, right, labels, weights, dense, hard, focal_px, baseline_m, doffs_px, image_hw,
                             percentiles, config, coarse, coarse_config, surface_valid)

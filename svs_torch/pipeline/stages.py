@@ -55,7 +55,9 @@ def warped_where(images: torch.Tensor, homographies: torch.Tensor, pick: torch.T
     near-surface, side and floor rules, six warps of 8 pairs at 320x240 where one of them was rectified (a row-
     aligned pair of the bench's real list), about 2 ms a pair of `estimate --pairs`. Each pair's warp is its own
     (kornia warps a batch pair by pair: the same values alone), so the result is the same. Gradients flow as
-    through ``warp``, to the picked pairs' images; the hard path's (the differentiable pass keeps its torch.where)."""
+    through ``warp`` to the picked pairs' images and homographies, and straight to the others' images, as they did
+    through the ``torch.where`` of a whole-batch warp: the hard dense stage and the differentiable pass
+    (:func:`~svs_torch.pipeline.soft.differentiable_depth`) both warp this way."""
     if not bool(pick.any()):
         return images
     if bool(pick.all()):
