@@ -47,8 +47,8 @@ def row_autocorrelation(image: torch.Tensor, mask: torch.Tensor, max_lag_px: int
 
     Four row correlations by FFT, zero-padded past the longest lag so that none wraps: the centred values with
     themselves, their squares with the mask both ways (each lag's norm over its own pairs) and the mask with
-    itself (the pairs' count). Shifted products of the whole image, lag by lag, took 14 ms a 320 × 240 pair; this
-    takes about 1.5."""
+    itself (the pairs' count). Shifted products of the whole image, lag by lag, took 14 ms a 320 × 240 pair; an
+    inverse transform of every row 1.2-2.7; this, about 0.8-1.2."""
     return _row_statistics(image, mask, max_lag_px)[0]
 
 
@@ -60,29 +60,59 @@ def _row_statistics(image: torch.Tensor, mask: torch.Tensor, max_lag_px: int
     check_shape(mask, "mask", list(image.shape))
     check_dtype(mask, "mask", "bool")
     check_count(max_lag_px, "max_lag_px", 1)
-    # In float32 (a fifth of float64's time; the correlations within 1e-5 of numpy's float64), each row's spectrum
-    # taken once.
-    x, inside = image.detach().to(torch.float32), mask.to(torch.float32)
+    # In float32 (a fifth of float64's time; the correlations within 1e-5 of numpy's float64). The three images are
+    # written into one zero-padded buffer and transformed in one call, at a length of small prime factors (the 344
+    # of 320 + 24 has 43 and took 6.7× as long as 352). The sums over rows are taken of the spectra's products,
+    # before the inverse transform (it is linear): one inverse a pair, in float64, not one a row. The pairs' counts
+    # stay within 0.04 of the exact ones on a 2900 × 2000 image (0.0003 at 320 × 240), well inside the 0.5 below.
+    x, width = image.detach().to(torch.float32), image.shape[-1]
+    length = _fft_length(width + max_lag_px)
+    padded = x.new_empty((3, *x.shape[:-1], length))
+    padded[..., width:] = 0
+    centred, centred_squared, inside = padded[..., :width].unbind(0)
+    inside.copy_(mask)
     count = inside.sum((1, 2, 3), keepdim=True).clamp_min(1)
-    centred = (x - (x * inside).sum((1, 2, 3), keepdim=True) / count) * inside
-    length = x.shape[-1] + max_lag_px
-    values, squares, weights = (torch.fft.rfft(a, n=length) for a in (centred, centred * centred, inside))
+    x_inside = x * inside
+    torch.mul(x - x_inside.sum((1, 2, 3), keepdim=True) / count, inside, out=centred)
+    torch.mul(centred, centred, out=centred_squared)
+    values, squares, weights = torch.fft.rfft(padded).unbind(0)
 
-    def correlated(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:  # Σ over rows and i of a[i] · b[i + lag]
-        return torch.fft.irfft(a.conj() * b, n=length)[..., 1:max_lag_px + 1].to(torch.float64).sum((1, 2))
+    def inverse(spectrum: torch.Tensor) -> torch.Tensor:  # (B, F) summed spectrum → lags 1 … max_lag_px
+        return torch.fft.irfft(spectrum.to(torch.complex128), n=length)[..., 1:max_lag_px + 1]
 
-    products = correlated(values, values)
-    norm = (correlated(squares, weights) * correlated(weights, squares)).clamp_min(0).sqrt()
+    def power(a: torch.Tensor) -> torch.Tensor:  # Σ over rows of conj(a) · a, real
+        parts = torch.view_as_real(a).flatten(-2)  # (B, 1, H, 2F): real and imaginary parts side by side
+        return (parts * parts).sum((1, 2)).view(*a.shape[:1], -1, 2).sum(-1)
+
+    # Σ over rows and i of a[i] · b[i + lag] is the inverse of Σ over rows of conj(A) · B; squares against weights
+    # both ways are one product and its conjugate.
+    squares_weights = (squares.conj() * weights).sum((1, 2))
+    products = inverse(power(values))
+    norm = (inverse(squares_weights) * inverse(squares_weights.conj())).clamp_min(0).sqrt()
     # float32 rounding is not 0 where the sums are: a lag with no pixel pair inside the mask (a mask of every other
     # square of a checker has none at its side) is told by the pairs' count, exact to well under 0.5; a region
     # without texture (the bright squares alone, all one level) by its centred energy against its values' (a level
     # of texture on mid grey: 6e-5); a lag's norm against the FFTs' rounding of that energy.
-    energy = (centred * centred).sum((1, 2, 3)).to(torch.float64).view(-1, 1)
-    textured = energy > 1e-8 * (x * x * inside).sum((1, 2, 3)).to(torch.float64).view(-1, 1)
-    pairs = correlated(weights, weights)
+    energy = centred_squared.sum((1, 2, 3)).to(torch.float64).view(-1, 1)
+    textured = energy > 1e-8 * (x_inside * x_inside).sum((1, 2, 3)).to(torch.float64).view(-1, 1)
+    pairs = inverse(power(weights))
     paired = (pairs >= 0.5) & (norm > 1e-6 * energy) & textured
     spread = (energy.view(-1) / count.view(-1).to(torch.float64)).sqrt()
     return torch.where(paired, products / norm.clamp_min(1e-30), 0.0).clamp(-1.0, 1.0), pairs.round(), spread
+
+
+def _fft_length(least: int) -> int:
+    """The shortest even length of ``least`` or more whose prime factors are all 2, 3, 5 or 11: measured the fast
+    ones of the real FFT here (320 + 24 = 344 has 43 and took 6.7× as long as 352; 350, with 7, 3×)."""
+    length = least + least % 2
+    while True:
+        rest = length
+        for factor in (2, 3, 5, 11):
+            while rest % factor == 0:
+                rest //= factor
+        if rest == 1:
+            return length
+        length += 2
 
 
 def period_along_rows(image: torch.Tensor, mask: torch.Tensor, min_peak: float, max_lag_px: int = MAX_PERIOD_PX

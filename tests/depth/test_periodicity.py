@@ -22,17 +22,22 @@ def as_batch(*images: np.ndarray) -> torch.Tensor:
     return torch.from_numpy(np.stack(images).astype(np.float32)).unsqueeze(1)
 
 
-def test_row_autocorrelation_is_numpy_corrcoef_over_the_masked_pairs():
+@pytest.mark.parametrize("height, width, max_lag_px", [(30, 50, 6), (240, 320, 24), (17, 43, 5)])
+def test_row_autocorrelation_is_numpy_corrcoef_over_the_masked_pairs(height, width, max_lag_px):
+    # Sizes whose padded rows (56, 344 and 48 long) the FFT takes at another length (60, 352, 48); a batch of two
+    # pairs, each summed over its own rows.
     rng = np.random.default_rng(0)
-    image = cv2.GaussianBlur(rng.random((30, 50)).astype(np.float32), (0, 0), 1.5)
-    mask = rng.random((30, 50)) > 0.3
-    r = row_autocorrelation(as_batch(image), torch.from_numpy(mask)[None, None], max_lag_px=6)[0].numpy()
-    image = image.astype(np.float64)
-    centred = np.where(mask, image - image[mask].mean(), 0.0)
-    for lag in range(1, 7):
-        both = mask[:, :-lag] & mask[:, lag:]
-        a, b = centred[:, :-lag][both], centred[:, lag:][both]
-        assert r[lag - 1] == pytest.approx(float(a @ b / np.sqrt((a @ a) * (b @ b))), abs=1e-5)  # float32 FFTs
+    images = [cv2.GaussianBlur(rng.random((height, width)).astype(np.float32), (0, 0), sigma) for sigma in (1.5, 3.0)]
+    masks = [rng.random((height, width)) > share for share in (0.3, 0.6)]
+    r = row_autocorrelation(as_batch(*images), torch.from_numpy(np.stack(masks))[:, None], max_lag_px).numpy()
+    for pair, (image, mask) in enumerate(zip(images, masks)):
+        image = image.astype(np.float64)
+        centred = np.where(mask, image - image[mask].mean(), 0.0)
+        for lag in range(1, max_lag_px + 1):
+            both = mask[:, :-lag] & mask[:, lag:]
+            a, b = centred[:, :-lag][both], centred[:, lag:][both]
+            expected = float(a @ b / np.sqrt((a @ a) * (b @ b)))
+            assert r[pair, lag - 1] == pytest.approx(expected, abs=1e-5)  # float32 FFTs
 
 
 def test_bars_and_grates_repeat_and_a_natural_texture_does_not():
