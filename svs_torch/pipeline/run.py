@@ -13,7 +13,7 @@ import time
 import torch
 from torch import nn
 
-from ..core.checks import InputError, check_instance
+from ..core.checks import InputError, check_instance, check_stereo_views, checked_images
 from ..core.inference import plain_tensors
 from ..core.size_groups import run_by_size
 from ..core.types import FundamentalResult, FundamentalStatus, Matches, StereoBatch, StereoSegmentation
@@ -140,9 +140,10 @@ def _estimate_once(batch: StereoBatch, config: PipelineConfig, network: nn.Modul
         logits = predict_obstacle_logits(net, batch.left, batch.right, config.segmentation.ground, batch.baseline_m,
                                          batch.focal_px, config.segmentation.camera_frames)
         check_finite_logits(logits, "network")
-    with torch.no_grad():
-        result = dataclasses.replace(_estimate_hard(_detached(batch), config, network, logits),
-                                     exposure_matched=matched,
+    hard = _detached(batch)
+    check_stereo_views(hard.left, hard.right)  # once here: the stages then take the two views as checked
+    with torch.no_grad(), checked_images(hard.left, hard.right):
+        result = dataclasses.replace(_estimate_hard(hard, config, network, logits), exposure_matched=matched,
                                      features_smoothed=features_smoothed(batch.batch_size, config, batch.left.device))
     if not config.differentiable:
         return result

@@ -11,7 +11,8 @@ import torch
 
 from svs_torch import SVS_CAMERA, InputError, StereoBatch, SVSCamera
 from svs_torch.core.camera import parse_size
-from svs_torch.core.checks import all_finite, check_dtype, check_finite, check_finite_where, check_instance, check_shape
+from svs_torch.core.checks import (all_finite, check_dtype, check_finite, check_finite_where, check_image, check_instance,
+                                   check_shape, checked_images)
 from svs_torch.depth import ObjectDepths, estimate_range, labelled_quantile, masked_quantile, point_depths
 from svs_torch.features import extract_surf_features
 from svs_torch.geometry.matching import match_sad
@@ -92,6 +93,49 @@ def test_all_finite_takes_integers_and_bools_and_the_checks_still_name_the_bad_v
     check_finite_where(truth, "depth", torch.tensor([[True, False], [True, True]]), "valid")
     with pytest.raises(InputError, match=r"pair\(s\) \[0\] of 2"):
         check_finite_where(truth, "depth", torch.ones(2, 2, dtype=torch.bool), "valid")
+
+
+def test_checked_images_are_not_ranged_again_in_the_block_and_nothing_else_is_spared():
+    views = torch.rand(2, 1, 6, 8)
+    bad = views.clone()
+    bad[1, 0, 2, 3] = float("nan")  # what a check would refuse: a skipped check lets it through
+    with checked_images(bad):
+        check_image(bad, "left")
+        check_image(bad.detach(), "left")  # the same memory and layout
+        assert all_finite(bad)
+        for other in (bad.clone(), bad[1:], bad.transpose(-1, -2)):  # other memory or layout: checked as ever
+            with pytest.raises(InputError, match="left: expected values in"):
+                check_image(other, "left")
+        with checked_images(views):  # nested: both named
+            check_image(bad, "left")
+            check_image(views, "right")
+    with pytest.raises(InputError, match=r"left: expected values in \[0, 1\], got NaN \(image 1 of 2\)"):
+        check_image(bad, "left")  # after the block
+    assert not all_finite(bad)
+
+
+def test_the_pipeline_ranges_each_view_once(monkeypatch):
+    """Its stages each ranged the same two views (17 full-image scans a batch of 8 at 320x240 before, 8 now)."""
+    from conftest import render_border_strip_scene
+    from svs_torch.pipeline import estimate_obstacle_depth
+
+    batch = render_border_strip_scene().batch
+    scans = {"left": 0, "right": 0}
+    aminmax = torch.aminmax
+
+    def counted(tensor, *args, **kwargs):
+        for name in scans:
+            scans[name] += tensor.data_ptr() == getattr(batch, name).data_ptr() and tensor.shape == batch.left.shape
+        return aminmax(tensor, *args, **kwargs)
+
+    monkeypatch.setattr(torch, "aminmax", counted)
+    result = estimate_obstacle_depth(batch)
+    assert scans == {"left": 1, "right": 1}
+    assert result.status.tolist() == [0]
+    bad = dataclasses.replace(batch)
+    bad.left[0, 0, 5, 5] = float("nan")  # written after the batch was made: the pipeline's own check finds it
+    with pytest.raises(InputError, match="left: expected values in"):
+        estimate_obstacle_depth(bad)
 
 
 def test_stereo_batch_from_images_broadcasts_calibration():
