@@ -69,7 +69,12 @@ def checked_images(*images: torch.Tensor) -> Iterator[None]:
 
 def _was_checked(tensor: torch.Tensor) -> bool:
     checked = _CHECKED.get()
-    return bool(checked) and tensor.layout == torch.strided and not tensor.is_meta and _layout(tensor) in checked
+    if not checked or tensor.layout != torch.strided or tensor.is_meta:
+        return False
+    try:
+        return _layout(tensor) in checked
+    except RuntimeError:  # no storage to point at (a functorch wrapper): not one of them
+        return False
 
 
 def _format_spec(spec: Sequence[str | int]) -> str:
