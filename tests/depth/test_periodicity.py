@@ -24,8 +24,8 @@ def as_batch(*images: np.ndarray) -> torch.Tensor:
 
 @pytest.mark.parametrize("height, width, max_lag_px", [(30, 50, 6), (240, 320, 24), (17, 43, 5)])
 def test_row_autocorrelation_is_numpy_corrcoef_over_the_masked_pairs(height, width, max_lag_px):
-    # Sizes whose padded rows (56, 344 and 48 long) the FFT takes at another length (60, 352, 48); a batch of two
-    # pairs, each summed over its own rows.
+    # Padded rows of 56 and 344 the FFT takes at 60 and 352, and of 48 at its own length; a batch of two pairs, each
+    # summed over its own rows.
     rng = np.random.default_rng(0)
     images = [cv2.GaussianBlur(rng.random((height, width)).astype(np.float32), (0, 0), sigma) for sigma in (1.5, 3.0)]
     masks = [rng.random((height, width)) > share for share in (0.3, 0.6)]
