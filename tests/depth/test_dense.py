@@ -760,6 +760,22 @@ def test_compiled_kernel_is_bit_identical_to_the_torch_path(config, generator):
 
 
 @needs_kernel
+@pytest.mark.parametrize("window_size", [7, 9, 11, 13, 19, 21])
+def test_compiled_kernel_window_sums_over_rows_longer_than_a_chunk(window_size, generator):
+    """The kernel sums a wide window (9 and more) through sums of three, 256 columns at a time: on rows longer
+    than two such chunks, with the 16-bit costs (pre-filtered levels) and the float ones (raw levels past 16
+    bits at 13 and more), the torch path's disparities and validity bit for bit."""
+    base = torch.rand(2, 1, 30, 600, generator=generator)
+    right = 0.9 * torch.roll(base, shifts=-6, dims=-1) + 0.1 * torch.rand(2, 1, 30, 600, generator=generator)
+    for prefilter in ("xsobel", "none"):
+        config = DenseConfig(window_size=window_size, prefilter=prefilter, whole_range_in_view=False)
+        kernel = block_match_sad(base, right, 0, 20, replace(config, kernel="c"))
+        eager = block_match_sad(base, right, 0, 20, replace(config, kernel="torch"))
+        assert torch.equal(kernel.disparity_px, eager.disparity_px) and torch.equal(kernel.valid, eager.valid)
+        assert kernel.valid.float().mean() > 0.5
+
+
+@needs_kernel
 def test_compiled_kernel_gives_the_pipeline_the_same_depths(teddy):
     """Region crops, per-pair ranges, groups and the coarse pass through both paths: the same dense maps."""
     left = teddy.left.repeat(3, 1, 1, 1)
