@@ -298,25 +298,22 @@ static inline int64_t needed_count(const Pair *p) { return p->extra ? p->width +
 static inline int64_t right_columns(const Pair *p) { return p->extra ? p->width + p->extra : 0; }
 
 /* Output row y of a band whose crop rows (K - 1 more than its output rows) sit from ``left`` / ``right`` on,
- * row y's window starting at crop row y: the column sums of every disparity (D rows of WL), over the columns
- * the needed costs read. ``fresh``: the band's first row, whose column sums are made from scratch; each later
- * row slides them down by one (exact whole numbers). */
+ * row y's window starting at crop row y: the column sums of disparity index d (row d of D rows of WL), over the
+ * columns the needed costs read. ``fresh``: the band's first row, whose column sums are made from scratch; each
+ * later row slides them down by one (exact whole numbers). */
 #define DEFINE_COLUMN_SUMS(COST, SAMPLE, SUFFIX)                                                                  \
     static void column_sums_##SUFFIX(const Pair *p, int64_t K, int64_t y, int fresh, const SAMPLE *left,        \
-                                     const SAMPLE *right, COST *vsum) {                                          \
+                                     const SAMPLE *right, int64_t d, COST *vsum) {                               \
         const int64_t D = p->D, WL = p->WL, WR = p->WR, n = needed_count(p) + K - 1;                             \
-        for (int64_t d = 0; d < D; ++d) {                                                                        \
-            const int64_t c0 = needed_from(p, d), o = D - 1 - d + c0;                                            \
-            COST *v = vsum + d * WL + c0;                                                                        \
-            if (fresh) {                                                                                         \
-                for (int64_t x = 0; x < n; ++x) v[x] = 0;                                                        \
-                for (int64_t r = y; r < y + K; ++r)                                                             \
-                    add_row_##SUFFIX(n, left + r * WL + c0, right + r * WR + o, v);                              \
-            } else {                                                                                             \
-                int64_t r = y + K - 1;                                                                           \
-                slide_row_##SUFFIX(n, left + r * WL + c0, right + r * WR + o, left + (y - 1) * WL + c0,         \
-                                   right + (y - 1) * WR + o, v);                                                 \
-            }                                                                                                    \
+        const int64_t c0 = needed_from(p, d), o = D - 1 - d + c0;                                                \
+        COST *v = vsum + d * WL + c0;                                                                            \
+        if (fresh) {                                                                                             \
+            for (int64_t x = 0; x < n; ++x) v[x] = 0;                                                            \
+            for (int64_t r = y; r < y + K; ++r) add_row_##SUFFIX(n, left + r * WL + c0, right + r * WR + o, v);  \
+        } else {                                                                                                 \
+            int64_t r = y + K - 1;                                                                               \
+            slide_row_##SUFFIX(n, left + r * WL + c0, right + r * WR + o, left + (y - 1) * WL + c0,             \
+                               right + (y - 1) * WR + o, v);                                                     \
         }                                                                                                        \
     }
 
@@ -347,7 +344,7 @@ DEFINE_ROW_COSTS(uint16_t, u16, U16_INF)
 static void run_row_f32(const Pair *p, int64_t K, int64_t y, int fresh, const float *left, const float *right,
                         float *vsum, RowState *st, RowOut *out) {
     const int64_t D = p->D, first = p->extra, WC = p->width, R = right_columns(p);
-    column_sums_f32(p, K, y, fresh, left, right, vsum);
+    for (int64_t d = 0; d < D; ++d) column_sums_f32(p, K, y, fresh, left, right, d, vsum);
     float *restrict c = st->cost;
     float *restrict best_cost = st->best_cost, *restrict best = st->best, *restrict before = st->before;
     float *restrict after = st->after, *restrict rival = st->rival, *restrict prefix1 = st->prefix1;
@@ -403,8 +400,10 @@ static inline float cost_to_float(uint16_t c) { return c == U16_INF ? INFINITY :
 static void run_row_u16(const Pair *p, int64_t K, int64_t y, int fresh, const int16_t *left, const int16_t *right,
                         uint16_t *vsum, uint16_t *costs, RowOut *out) {
     const int64_t D = p->D, R = right_columns(p), first = p->extra, WC = p->width, stride = cost_stride(p);
-    column_sums_u16(p, K, y, fresh, left, right, vsum);
-    for (int64_t d = 0; d < D; ++d) row_costs_u16(p, K, d, vsum, costs + d * stride);
+    for (int64_t d = 0; d < D; ++d) { /* each row of column sums boxed while it is in L1 */
+        column_sums_u16(p, K, y, fresh, left, right, d, vsum);
+        row_costs_u16(p, K, d, vsum, costs + d * stride);
+    }
     enum { SPAN = GROUPS * LANES };
     uint16_t lanes[5 * SPAN];
     for (int64_t x = 0; x < WC; x += SPAN) {
