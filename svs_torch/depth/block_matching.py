@@ -10,18 +10,18 @@ from dataclasses import replace
 
 import torch
 
-from ..core.checks import InputError, check_dtype, check_instance, check_shape, check_stereo_views
-from ..core.kernels.checks import as_integer_tensor, check_counts, check_image_hw, check_nonempty, check_row_fill
+from ..core.checks import InputError, check_dtype, check_instance, check_shape
+from ..core.kernels.checks import check_counts, check_row_fill
 from ..core.mask_reductions import any_along
 from . import kernels
-from .cost_volume import (_box_sum, _cost_volume, _gather_crop, check_volume_size, crop_box, prefilter_xsobel,
-                          quantize_levels, region_crop_boxes, wanted_pixels)
+from .cost_volume import (_box_sum, _check_pair, _check_range, _check_sizes, _cost_volume, _gather_crop, crop_box,
+                          prefilter_xsobel, quantize_levels, region_crop_boxes, wanted_pixels)
 from .dense_config import DenseConfig, DenseDisparity, DisparityRange
-from .semi_global import pair_residual_levels, semi_global_aggregate_with_winner
+from .semi_global import pair_residual_levels, residual_reaches, semi_global_aggregate_with_winner
 from .winner import _WinnerStats, _left_right_consistent, _winner, _winner_neighbours, _winner_stats_torch
 
-__all__ = ["block_match_sad", "block_match_sad_with_residual", "dense_disparity_over_regions", "fill_invalid_rows",
-           "valid_row_neighbours"]
+__all__ = ["block_match_sad", "block_match_sad_noisy_pairs", "block_match_sad_with_residual",
+           "dense_disparity_over_regions", "fill_invalid_rows", "valid_row_neighbours"]
 
 #: Noisy pairs matched again and aggregated together (:func:`_smooth_noisy_pairs`); their maps do not depend on it.
 SMOOTH_BLOCK_PAIRS = 4
@@ -228,39 +228,6 @@ def valid_row_neighbours(disparity: torch.Tensor, valid: torch.Tensor
             disparity.gather(-1, right_index.clamp(0, width - 1)))
 
 
-def _check_pair(left: torch.Tensor, right: torch.Tensor, config: DenseConfig) -> int:
-    # Values in [0, 1]: then the levels are whole numbers within ±255 and every SAD sum is exact, in the C
-    # kernel's running window sums as in the torch path's box sums; an inf, a NaN or a huge value would make
-    # inf − inf or round-off of the running sums where the box sums give another value. One aminmax per image.
-    dims = check_stereo_views(left, right)
-    check_nonempty(left, "left")
-    check_instance(config, "config", DenseConfig)
-    return dims["B"]
-
-
-def _check_sizes(image_hw: torch.Tensor | None, left: torch.Tensor) -> torch.Tensor:
-    """``image_hw`` ``(B, 2)``, each pair's size within the tensors (default: all of them)."""
-    b, _, h, w = left.shape
-    if image_hw is None:
-        return torch.tensor([[h, w]], device=left.device).expand(b, 2)
-    return check_image_hw(image_hw, b, h, w)
-
-
-def _check_range(min_disparity_px: torch.Tensor | int, num_disparities: int, left: torch.Tensor,
-                 left_right: bool) -> torch.Tensor:
-    if type(num_disparities) is not int or not 1 <= num_disparities <= kernels.MAX_DISPARITIES:  # not a bool
-        raise InputError(f"num_disparities: expected an int in [1, {kernels.MAX_DISPARITIES}], got {num_disparities!r}")
-    check_volume_size(num_disparities, 1, left.shape[-1] + 2 * (num_disparities - 1) * left_right, "image row")
-    minimum = as_integer_tensor(min_disparity_px, "min_disparity_px", left.device)
-    minimum = minimum.expand(left.shape[0]) if minimum.dim() == 0 else minimum
-    check_shape(minimum, "min_disparity_px", [left.shape[0]])
-    check_dtype(minimum, "min_disparity_px", "int")
-    # Column arithmetic in int64 (the kernel's and the torch path's index maths) must not overflow.
-    if minimum.numel() and bool(((minimum.long() >= 2**31) | (minimum.long() <= -2**31)).any()):  # (abs(-2^63) < 0)
-        raise InputError(f"min_disparity_px: expected values in (-2^31, 2^31), got {minimum.tolist()}")
-    return minimum.long()
-
-
 def block_match_sad(left: torch.Tensor, right: torch.Tensor, min_disparity_px: torch.Tensor | int,
                     num_disparities: int, config: DenseConfig = DenseConfig(),
                     image_hw: torch.Tensor | None = None) -> DenseDisparity:
@@ -283,6 +250,16 @@ def block_match_sad_with_residual(left: torch.Tensor, right: torch.Tensor, min_d
     as camera frames from JPEG digit 3 with σ 3 on 8.7–13.4 at 320×240. Not differentiable."""
     found, best_cost = _match_whole(left, right, min_disparity_px, num_disparities, config, image_hw, best_cost=True)
     return found, pair_residual_levels(best_cost, torch.ones_like(best_cost, dtype=torch.bool), config.window_size)
+
+
+def block_match_sad_noisy_pairs(left: torch.Tensor, right: torch.Tensor, min_disparity_px: torch.Tensor | int,
+                                num_disparities: int, min_residual_levels: float, config: DenseConfig = DenseConfig(),
+                                image_hw: torch.Tensor | None = None) -> tuple[DenseDisparity, torch.Tensor]:
+    """:func:`block_match_sad` and which pairs' matching residual (:func:`block_match_sad_with_residual`'s) reaches
+    ``min_residual_levels``, ``(B,)`` bool: the same verdicts, counted instead of taking the median
+    (:func:`~svs_torch.depth.semi_global.residual_reaches`). Not differentiable."""
+    found, best_cost = _match_whole(left, right, min_disparity_px, num_disparities, config, image_hw, best_cost=True)
+    return found, residual_reaches(best_cost, None, config.window_size, min_residual_levels)
 
 
 @torch.no_grad()  # winner takes all: no gradient (soft_block_match has one); out= ops refuse grad

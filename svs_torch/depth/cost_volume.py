@@ -1,6 +1,7 @@
 """The SAD cost volume of the dense stage: the pre-filter (x-Sobel or raw levels, in whole 1/255 steps), the
 crops around the kept regions (:func:`region_crop_boxes`, :func:`wanted_pixels`) and the window sums over
-them, in cache-sized blocks.
+them, in cache-sized blocks; and the checks of the views, sizes and disparity range that every hard and soft
+matcher of the stage shares (``_check_pair``, ``_check_sizes``, ``_check_range``).
 """
 
 from __future__ import annotations
@@ -8,7 +9,8 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from ..core.checks import InputError, check_dtype, check_shape
+from ..core.checks import InputError, check_dtype, check_instance, check_shape, check_stereo_views
+from ..core.kernels.checks import as_integer_tensor, check_image_hw, check_nonempty
 from ..core.mask_reductions import any_along
 from . import kernels
 from .dense_config import DenseConfig
@@ -261,3 +263,36 @@ def wanted_pixels(mask: torch.Tensor, margin_px: int) -> torch.Tensor:
     first = torch.where(mask, index, w).amin(dim=-1, keepdim=True)
     last = torch.where(mask, index, -1).amax(dim=-1, keepdim=True)
     return rows & (index >= first - margin_px) & (index <= last + margin_px)
+
+
+def _check_pair(left: torch.Tensor, right: torch.Tensor, config: DenseConfig) -> int:
+    # Values in [0, 1]: then the levels are whole numbers within ±255 and every SAD sum is exact, in the C
+    # kernel's running window sums as in the torch path's box sums; an inf, a NaN or a huge value would make
+    # inf − inf or round-off of the running sums where the box sums give another value. One aminmax per image.
+    dims = check_stereo_views(left, right)
+    check_nonempty(left, "left")
+    check_instance(config, "config", DenseConfig)
+    return dims["B"]
+
+
+def _check_sizes(image_hw: torch.Tensor | None, left: torch.Tensor) -> torch.Tensor:
+    """``image_hw`` ``(B, 2)``, each pair's size within the tensors (default: all of them)."""
+    b, _, h, w = left.shape
+    if image_hw is None:
+        return torch.tensor([[h, w]], device=left.device).expand(b, 2)
+    return check_image_hw(image_hw, b, h, w)
+
+
+def _check_range(min_disparity_px: torch.Tensor | int, num_disparities: int, left: torch.Tensor,
+                 left_right: bool) -> torch.Tensor:
+    if type(num_disparities) is not int or not 1 <= num_disparities <= kernels.MAX_DISPARITIES:  # not a bool
+        raise InputError(f"num_disparities: expected an int in [1, {kernels.MAX_DISPARITIES}], got {num_disparities!r}")
+    check_volume_size(num_disparities, 1, left.shape[-1] + 2 * (num_disparities - 1) * left_right, "image row")
+    minimum = as_integer_tensor(min_disparity_px, "min_disparity_px", left.device)
+    minimum = minimum.expand(left.shape[0]) if minimum.dim() == 0 else minimum
+    check_shape(minimum, "min_disparity_px", [left.shape[0]])
+    check_dtype(minimum, "min_disparity_px", "int")
+    # Column arithmetic in int64 (the kernel's and the torch path's index maths) must not overflow.
+    if minimum.numel() and bool(((minimum.long() >= 2**31) | (minimum.long() <= -2**31)).any()):  # (abs(-2^63) < 0)
+        raise InputError(f"min_disparity_px: expected values in (-2^31, 2^31), got {minimum.tolist()}")
+    return minimum.long()

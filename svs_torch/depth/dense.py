@@ -39,8 +39,9 @@ import torch.nn.functional as F
 
 from ..core.checks import InputError, check_dtype, check_finite_where, check_shape
 from . import kernels
-from .block_matching import _check_pair, _check_sizes, _compiled, block_match_sad, dense_disparity_over_regions
-from .cost_volume import crop_box, crop_index, prefilter_xsobel, quantize_levels, region_crop_boxes, wanted_pixels
+from .block_matching import _compiled, block_match_sad, dense_disparity_over_regions
+from .cost_volume import (_check_pair, _check_sizes, crop_box, crop_index, prefilter_xsobel, quantize_levels,
+                          region_crop_boxes, wanted_pixels)
 from .dense_config import DenseConfig, DenseDisparity, DisparityRange
 from .pooling import _any_pool, mean_pool, reduction_factor
 from .search_range import coarse_search_range, disparity_search_range

@@ -12,7 +12,8 @@ from ..core.checks import check_dtype, check_finite, check_shape
 from ..core.mask_reductions import all_true
 from ..core.ordering import sort_last
 from . import kernels
-from .block_matching import _check_pair, _check_sizes, dense_disparity_over_regions
+from .block_matching import dense_disparity_over_regions
+from .cost_volume import _check_pair, _check_sizes
 from .dense_config import DenseConfig, DisparityRange
 from .pooling import _any_pool, mean_pool, reduction_factor
 

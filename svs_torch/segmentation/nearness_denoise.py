@@ -61,7 +61,7 @@ import torch
 import torch.nn.functional as F
 
 from ..core.checks import InputError, check_count, check_device, check_dtype, check_instance, check_shape
-from ..depth.block_matching import (block_match_sad, block_match_sad_with_residual, fill_invalid_rows,
+from ..depth.block_matching import (block_match_sad, block_match_sad_noisy_pairs, fill_invalid_rows,
                                     valid_row_neighbours)
 from ..depth.dense_config import DenseConfig, DenseDisparity
 from ..depth.soft_dense import soft_block_match
@@ -136,8 +136,8 @@ def match_by_noise(left: torch.Tensor, right: torch.Tensor, num_disparities: int
             left, right, 0, num_disparities, dataclasses.replace(dense, window_size=config.noisy_window_size)),
             config.noisy_window_size)
         return found, torch.ones(left.shape[0], dtype=torch.bool, device=left.device)
-    found, residual = block_match_sad_with_residual(left, right, 0, num_disparities, dense)
-    widened = (residual >= config.noisy_min_residual_levels) & (config.noisy_window_size != dense.window_size)
+    found, noisy = block_match_sad_noisy_pairs(left, right, 0, num_disparities, config.noisy_min_residual_levels, dense)
+    widened = noisy & (config.noisy_window_size != dense.window_size)
     if not bool(widened.any()):
         return found, widened
     index = widened.nonzero().flatten()

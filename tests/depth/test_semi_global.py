@@ -12,10 +12,11 @@ import torch
 
 from svs_torch.core.errors import InputError
 from svs_torch.depth import kernels
-from svs_torch.depth.block_matching import block_match_sad, block_match_sad_with_residual, dense_disparity_over_regions
+from svs_torch.depth.block_matching import (block_match_sad, block_match_sad_noisy_pairs, block_match_sad_with_residual,
+                                           dense_disparity_over_regions)
 from svs_torch.depth.dense_config import DenseConfig, DisparityRange
-from svs_torch.depth.semi_global import (_scan_columns_torch, pair_residual_levels, semi_global_aggregate,
-                                         semi_global_aggregate_with_winner)
+from svs_torch.depth.semi_global import (_scan_columns_torch, pair_residual_levels, residual_reaches,
+                                         semi_global_aggregate, semi_global_aggregate_with_winner)
 
 
 def _volume(generator: torch.Generator, b: int = 3, d: int = 7, h: int = 11, w: int = 70) -> torch.Tensor:
@@ -137,6 +138,28 @@ def test_residual_is_the_median_winner_cost_per_window_pixel():
     assert pair_residual_levels(best, torch.zeros_like(wanted), 3).tolist() == [0.0]
 
 
+@pytest.mark.parametrize("window_size", [1, 3, 7])
+@pytest.mark.parametrize("whole", [True, False])
+def test_residual_reaches_a_level_as_the_median_does(window_size, whole, generator):
+    """The count (residual_reaches) against the median (pair_residual_levels ≥ level), every verdict: costs with
+    +inf, NaN and unwanted pixels, odd and even counts, many equal values, a pair with no wanted pixel, and every
+    level at and beside each pair's own residual (where a count one off would flip the verdict)."""
+    best = torch.rand(6, 9, 13, generator=generator) * 60 * window_size ** 2
+    best = best.round() if whole else best
+    best[0, 0, :5] = torch.inf
+    best[1, 2, 3] = torch.nan
+    best[2] = best[2].round() % 5 * window_size ** 2  # runs of equal values
+    wanted = torch.rand(6, 9, 13, generator=generator) < 0.8
+    wanted[3, 0, 0] = ~wanted[3, 0, 0]  # one odd and one even count among the pairs
+    wanted[4] = False
+    residual = pair_residual_levels(best, wanted, window_size)
+    levels = [0.0, 1.0, 30.0, *residual.tolist(), *(residual - 1e-3).tolist(), *(residual + 1e-3).tolist(),
+              *torch.nextafter(residual, torch.full_like(residual, torch.inf)).tolist()]
+    for level in levels:
+        assert torch.equal(residual_reaches(best, wanted, window_size, level), residual >= level), level
+    assert residual[4] == 0 and residual_reaches(best, wanted, window_size, 0.0)[4]
+
+
 @pytest.mark.parametrize("best, wanted, window_size, name", [
     (torch.ones(2, 5, 6), torch.ones(2, 1, 6, dtype=torch.bool), 3, "wanted"),  # broadcast in silence
     (torch.ones(2, 5, 6), torch.ones(2, 5, 6), 3, "wanted"),  # NotImplementedError ("bitwise_and_cpu")
@@ -167,6 +190,9 @@ def test_whole_view_residual_is_the_fused_kernels_and_the_torch_paths():
     alone = block_match_sad_with_residual(noisy_left, noisy_right, 0, 16, config)[1]
     assert torch.equal(alone, residual[1:])
     assert float(residual[0]) == 0 < float(residual[1])  # the clean plane matches exactly
+    for level in (0.0, float(residual[1]), float(residual[1]) + 0.01):
+        gated, noisy = block_match_sad_noisy_pairs(left, right, 0, 16, level, config)
+        assert torch.equal(noisy, residual >= level) and torch.equal(gated.disparity_px, plain.disparity_px)
 
 
 def _noisy_plane(seed: int, sigma: float, shift_px: int = 6, h: int = 60, w: int = 96) -> tuple[torch.Tensor, ...]:
