@@ -239,10 +239,14 @@ def read_gray_image(path: str | Path, name: str = "path", dtype: torch.dtype = t
     elif array.ndim == 3:
         array = array[:, :, 0]
     full_scale = _FULL_SCALE[array.dtype]
-    brightest = int(array.max())
-    if array.dtype == np.uint16 and 0 < brightest < _FEW_BITS_LEVEL:
+    if array.dtype == np.uint16 and 0 < (brightest := int(array.max())) < _FEW_BITS_LEVEL:
         warn_when_loaded(f"{name}: a 16-bit image whose brightest level is {brightest} of 65535, read as nearly "
                          f"black; if it holds 10- or 12-bit data, scale it to the full 16-bit range: {path}")
+    if array.dtype == np.uint8:  # (float32 or float64: check_float_dtype)
+        # k / 255 divided in the dtype itself: for each of the 256 levels the value the float64 division gives
+        # rounded to float32 (tests/data/test_data.py tries them all), in two passes instead of four (0.26 ->
+        # 0.12 ms a 320x240 view).
+        return torch.from_numpy(array).to(dtype).div_(full_scale)[None, None]
     # Divide in float64 then cast: k / 255 rounded once to float32 lies within half an ulp of the exact value,
     # so multiplying by 255 and rounding recovers k exactly.
     gray = torch.from_numpy(array.astype(np.float64) / full_scale).to(dtype)

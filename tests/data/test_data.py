@@ -349,6 +349,8 @@ def test_gray_images_round_trip_and_equal_opencv(tmp_path: Path, data_dir: Path)
     for dtype in (torch.float32, torch.float64):
         gray = read_gray_image(tmp_path / "levels.png", dtype=dtype)
         assert gray.shape == (1, 1, 16, 16) and gray.dtype == dtype
+        # Each level's value is k / 255 in float64 rounded once to the dtype, whichever way it is divided.
+        assert torch.equal(gray[0, 0], torch.from_numpy(levels.astype(np.float64) / 255).to(dtype))
         assert np.array_equal((gray[0, 0] * 255).round().to(torch.uint8).numpy(), levels)
     deep = (np.arange(64, dtype=np.uint16) * 1000).reshape(8, 8)
     cv2.imwrite(str(tmp_path / "deep.png"), deep)
