@@ -71,7 +71,10 @@ def _load_entry(source, args) -> tuple[str | None, str | None, object]:
         return "BAD_INPUT", f"{reason} ({source.listed_at})" if listed else reason, None
     if not own:  # named as claim_export_names claims it (and load_pair_source names the others): a/x.png and
         # b/x.png were both 'x', and --disparity-out wrote the second's map over the first's in silence (an audit)
-        loaded = (dataclasses.replace(loaded[0], names=(source.name,)), *loaded[1:])
+        from ..core.checks import checked_images
+
+        with checked_images(loaded[0].left, loaded[0].right):  # ranged when they were loaded, a moment ago
+            loaded = (dataclasses.replace(loaded[0], names=(source.name,)), *loaded[1:])
     reason = too_small_reason(loaded[0].size_hw)
     return ("TOO_SMALL", reason, loaded) if reason else (None, None, loaded)  # its size and calibration reported
 

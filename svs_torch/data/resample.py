@@ -19,7 +19,7 @@ import torch
 import torch.nn.functional as F
 
 from ..core.camera import MAX_SIZE_PX
-from ..core.checks import InputError, check_instance
+from ..core.checks import InputError, check_instance, checked_images
 from ..core.types import StereoBatch
 
 __all__ = ["resize_stereo_batch", "collate_stereo_batches"]
@@ -153,10 +153,14 @@ def _concatenate(batches: Sequence[StereoBatch]) -> StereoBatch:
     names: tuple[str, ...] = ()
     if any(b.names for b in batches):
         names = tuple(name for b in batches for name in (b.names or ("",) * b.batch_size))
-    return StereoBatch(left=cat("left"), right=cat("right"), focal_px=cat("focal_px"), baseline_m=cat("baseline_m"),
-                       doffs_px=cat("doffs_px"), calibrated=cat("calibrated"), image_hw=cat("image_hw"),
-                       disparity_px=disparity, disparity_valid=valid, names=names,
-                       disparity_nonoccluded=nonoccluded)
+    left, right = cat("left"), cat("right")
+    # Their parts were ranged when those batches were made: not scanned again here (the pipeline ranges the views
+    # it is given once more, which refuses a batch written into after it was made).
+    with checked_images(left, right):
+        return StereoBatch(left=left, right=right, focal_px=cat("focal_px"), baseline_m=cat("baseline_m"),
+                           doffs_px=cat("doffs_px"), calibrated=cat("calibrated"), image_hw=cat("image_hw"),
+                           disparity_px=disparity, disparity_valid=valid, names=names,
+                           disparity_nonoccluded=nonoccluded)
 
 
 def collate_stereo_batches(

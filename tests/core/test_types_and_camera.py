@@ -138,6 +138,27 @@ def test_the_pipeline_ranges_each_view_once(monkeypatch):
         estimate_obstacle_depth(bad)
 
 
+def test_collated_views_are_not_ranged_again_and_the_pipeline_still_refuses_a_part_written_into(monkeypatch):
+    """Batches made (and ranged) one by one, then collated as ``estimate --pairs`` collates them: the
+    concatenated views are not scanned again (16 scans of 8 pairs' views at 320x240 before), and a part written
+    into after it was made is still refused by name where the pipeline takes the batch."""
+    from svs_torch.data import collate_stereo_batches
+    from svs_torch.pipeline import estimate_obstacle_depth
+
+    parts = [make_batch(), make_batch()]
+    scanned = []
+    aminmax = torch.aminmax
+    monkeypatch.setattr(torch, "aminmax", lambda tensor, *args, **kwargs: scanned.append(tensor.shape)
+                        or aminmax(tensor, *args, **kwargs))
+    collated = collate_stereo_batches(parts, mode="pad")  # as estimate --pairs collates a size group
+    assert collated.batch_size == 6 and (6, 1, 4, 5) not in scanned
+    assert torch.equal(collated.left, torch.cat([p.left for p in parts]))
+    parts[1].right[2, 0, 1, 1] = 2.0  # out of range, after that part was made
+    written = collate_stereo_batches(parts, mode="pad")
+    with pytest.raises(InputError, match=r"right: expected values in \[0, 1\], got min .*, max 2 \(image 5 of 6\)"):
+        estimate_obstacle_depth(written)
+
+
 def test_stereo_batch_from_images_broadcasts_calibration():
     batch = make_batch()
     assert batch.focal_px.shape == (3,) and batch.image_hw.tolist() == [[4, 5]] * 3
