@@ -7,7 +7,7 @@ from dataclasses import dataclass, fields
 
 import torch
 
-from ..core.checks import check_dtype, check_shape
+from ..core.checks import check_dtype, check_image, check_shape, checked_images
 from ..core.types import Keypoints
 from .descriptor import describe_surf, surf_orientation, with_orientation
 from .detector import SurfConfig, detect_surf_keypoints
@@ -59,8 +59,14 @@ def extract_surf_features(
         # 19 for 64 images at once and 28 for 128; in the pipeline on the 45 shared pairs, features 44 -> 10 ms a
         # pair). Keypoints are those of one block; orientations and descriptors agree to the round-off of the
         # integral image, whose border already depends on the batch (below 2e-3; depths unchanged).
-        blocks = [_extract(image[i:i + BLOCK_IMAGES], config, None if mask is None else mask[i:i + BLOCK_IMAGES])
-                  for i in range(0, image.shape[0], BLOCK_IMAGES)]
+        # The images ranged once here, not again by each block's detection and description (0.2 ms a pair of
+        # estimate --pairs at 320x240: two scans of every image).
+        check_image(image, "image")
+        starts = range(0, image.shape[0], BLOCK_IMAGES)
+        parts = [image[i:i + BLOCK_IMAGES] for i in starts]
+        with checked_images(*parts):
+            blocks = [_extract(part, config, None if mask is None else mask[i:i + BLOCK_IMAGES])
+                      for i, part in zip(starts, parts)]
         return _concatenate(blocks)
     return _extract(image, config, mask)
 

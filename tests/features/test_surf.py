@@ -439,6 +439,26 @@ def test_features_in_cache_blocks_equal_one_batch(monkeypatch, upright):
     assert torch.equal(blocked.descriptors, whole.descriptors)
 
 
+
+def test_blocked_images_are_ranged_once_and_a_bad_one_is_named_in_the_whole_batch(monkeypatch):
+    """More images than a block: one range scan of the whole batch (each block's detection and description had
+    scanned its images twice), and an image out of range is named by its place in the batch, not in its block."""
+    import svs_torch.features.surf as features_module
+
+    monkeypatch.setattr(features_module, "BLOCK_IMAGES", 4)
+    images = torch.rand(10, 1, 40, 50, generator=torch.Generator().manual_seed(3))
+    scanned = []
+    aminmax = torch.aminmax
+    monkeypatch.setattr(torch, "aminmax", lambda tensor, *args, **kwargs: scanned.append(tuple(tensor.shape))
+                        or aminmax(tensor, *args, **kwargs))
+    extract_surf_features(images, SurfConfig(upright=False))
+    assert scanned.count((10, 1, 40, 50)) == 1 and not [s for s in scanned if s[1:] == (1, 40, 50) and s[0] < 10]
+    for value, said in ((float("nan"), "got NaN"), (1.5, "got min .*, max 1.5")):
+        bad = images.clone()
+        bad[9, 0, 3, 3] = value
+        with pytest.raises(InputError, match=rf"^image: expected values in \[0, 1\], {said} \(image 9 of 10\)"):
+            extract_surf_features(bad)
+
 @pytest.mark.parametrize("path", ["kernel", "float64", "rotated"])
 def test_real_views_features_do_not_depend_on_the_batch(data_dir, path):
     """Issue 29: six real views at 320×240, batched and one at a time, with two threads (torch splits a mean over
