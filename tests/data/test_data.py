@@ -343,6 +343,22 @@ def test_bad_inputs_raise_one_clear_error(tmp_path: Path, data_dir: Path) -> Non
         resize_stereo_batch(load_image_pair(small, small), (0, 10))
 
 
+def test_an_image_pair_is_not_ranged_again_after_it_is_read(tmp_path: Path, monkeypatch) -> None:
+    """load_image_pair's views are k / 255 as read, in [0, 1]: making the batch does not scan them again (the
+    pipeline ranges the batch it is given), and the batch holds the levels read."""
+    levels = np.arange(240, dtype=np.uint8).reshape(12, 20)
+    cv2.imwrite(str(tmp_path / "L.png"), levels)
+    cv2.imwrite(str(tmp_path / "R.png"), levels[:, ::-1])
+    scanned = []
+    aminmax = torch.aminmax
+    monkeypatch.setattr(torch, "aminmax", lambda tensor, *args, **kwargs: scanned.append(tuple(tensor.shape))
+                        or aminmax(tensor, *args, **kwargs))
+    batch = load_image_pair(tmp_path / "L.png", tmp_path / "R.png")
+    assert (1, 1, 12, 20) not in scanned
+    assert torch.equal(batch.left[0, 0], torch.from_numpy(levels / 255).float())
+    assert torch.equal(batch.right[0, 0], torch.from_numpy(levels[:, ::-1] / 255).float())
+
+
 def test_gray_images_round_trip_and_equal_opencv(tmp_path: Path, data_dir: Path) -> None:
     levels = np.arange(256, dtype=np.uint8).reshape(16, 16)
     cv2.imwrite(str(tmp_path / "levels.png"), levels)
