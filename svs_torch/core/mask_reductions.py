@@ -1,4 +1,4 @@
-"""``any`` and ``all`` of a bool mask through a byte maximum or minimum, and a NaN test by one maximum.
+"""``any``, ``all`` and counts of a bool mask through a byte maximum, minimum or sum, and a NaN test by one maximum.
 
 On CPU, torch's bool reductions run a generic loop: on this project's 2-core reference machine (AMD EPYC,
 torch 2.13) ``mask.any(dim=-1)`` over a batch of 8 masks of 320×240 takes 1.5 ms, ``mask.any(dim=-2)`` 0.6 ms
@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["all_along", "any_along", "any_true", "all_true", "has_nan", "share_of_smaller"]
+__all__ = ["all_along", "any_along", "any_true", "all_true", "count_along", "has_nan", "share_of_smaller"]
 
 
 def any_along(mask: torch.Tensor, dim: int, keepdim: bool = False) -> torch.Tensor:
@@ -37,6 +37,19 @@ def all_along(mask: torch.Tensor, dim: int, keepdim: bool = False) -> torch.Tens
     if mask.dtype != torch.bool or mask.shape[dim] == 0:
         return mask.all(dim=dim, keepdim=keepdim)
     return mask.view(torch.uint8).amin(dim=dim, keepdim=keepdim).view(torch.bool)
+
+
+def count_along(mask: torch.Tensor, dim: int | tuple[int, ...], keepdim: bool = False) -> torch.Tensor:
+    """``mask.sum(dim=dim, keepdim=keepdim)`` (int64) for a bool ``mask``, as its bytes summed into int32 and
+    widened: a bool sum goes through int64, and along a long last dim through a generic loop (8 masks of 76 800
+    pixels, one thread: ``mask.sum(1)`` 2.5 ms, this 0.2). Where a count could pass 2³¹, the plain sum."""
+    dims = (dim,) if isinstance(dim, int) else tuple(dim)
+    reduced = 1
+    for d in dims:
+        reduced *= mask.shape[d]
+    if mask.dtype != torch.bool or reduced >= 2**31:
+        return mask.sum(dim=dim, keepdim=keepdim)
+    return mask.view(torch.uint8).sum(dim=dim, keepdim=keepdim, dtype=torch.int32).long()
 
 
 def any_true(mask: torch.Tensor) -> bool:

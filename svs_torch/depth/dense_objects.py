@@ -21,6 +21,7 @@ import torch
 
 from ..core.checks import InputError, check_dtype, check_instance, check_percentiles, check_shape
 from ..core.kernels.checks import check_nonempty, check_rows
+from ..core.mask_reductions import count_along
 from ..geometry.rectification import apply_homography
 from . import kernels
 from .block_matching import fill_invalid_rows
@@ -234,7 +235,7 @@ def _trusted_from(dense: DenseDisparity, labels: torch.Tensor, slots: torch.Tens
     share = []
     for n in range(num_slots):  # a handful of objects
         band = (pair_labels == slots[pairs, n].view(-1, 1, 1)) & (columns >= own[pairs, n].view(-1, 1, 1))
-        share.append((band & valid).flatten(1).sum(1) / band.flatten(1).sum(1).clamp_min(1))
+        share.append(count_along(band & valid, (1, 2)) / count_along(band, (1, 2)).clamp_min(1))
     trusted = torch.ones_like(lowered).index_copy(0, pairs, torch.stack(share, dim=1) >= min_share)
     return torch.where(lowered & ~trusted, shared, own)
 

@@ -9,7 +9,7 @@ from dataclasses import replace
 import torch
 
 from ..core.checks import check_dtype, check_finite, check_shape
-from ..core.mask_reductions import all_true
+from ..core.mask_reductions import all_true, count_along
 from ..core.ordering import sort_last
 from . import kernels
 from .block_matching import dense_disparity_over_regions
@@ -176,7 +176,7 @@ def _group_percentiles(disparity_px: torch.Tensor, values: torch.Tensor, valid: 
     check_dtype(groups, "groups", "bool")
     inside = groups & valid.unsqueeze(1)  # (B, G, P)
     selected = None
-    if groups.shape[1] and all_true(inside.sum(dim=1) <= 1):  # disjoint groups (objects): one label each
+    if groups.shape[1] and all_true(count_along(inside, 1) <= 1):  # disjoint groups (objects): one label each
         number = torch.arange(1, groups.shape[1] + 1, device=groups.device)
         member = (inside * number.view(1, -1, 1)).sum(dim=1)  # (B, P): the sample's group + 1, or 0
         selected = _select_nearest_ranks(disparity_px.detach(), member,
@@ -184,7 +184,7 @@ def _group_percentiles(disparity_px: torch.Tensor, values: torch.Tensor, valid: 
     if selected is not None:
         group_count, (group_low, group_high) = selected
     else:
-        group_count = inside.sum(dim=2)
+        group_count = count_along(inside, 2)
         ordered = sort_last(torch.where(inside, values.unsqueeze(1), torch.inf))
         group_low = _nearest_rank(ordered.flatten(0, 1), group_count.flatten(),
                                   percentiles[0]).view_as(group_count)
@@ -244,9 +244,9 @@ def _unique_where_checked(inside: torch.Tensor, full: DisparityRange, min_count:
     top = (full.min_disparity_px + (full.num_disparities if full.pair_num_disparities is None
                                     else full.pair_num_disparities) - 1)
     columns = torch.arange(inside.shape[-1], device=inside.device)
-    checked = (inside & (columns >= top.view(-1, 1, 1, 1))).flatten(1).sum(1, keepdim=True)
+    checked = count_along((inside & (columns >= top.view(-1, 1, 1, 1))).flatten(1), 1, keepdim=True)
     inside = inside.flatten(1)
-    return inside & (checked >= min_count) & (4 * checked >= inside.sum(1, keepdim=True))
+    return inside & (checked >= min_count) & (4 * checked >= count_along(inside, 1, keepdim=True))
 
 
 def coarse_search_range(left: torch.Tensor, right: torch.Tensor, mask: torch.Tensor, image_hw: torch.Tensor,

@@ -23,6 +23,7 @@ from __future__ import annotations
 import torch
 
 from ..core.checks import InputError, check_count, check_device, check_dtype, check_shape
+from ..core.mask_reductions import count_along
 from . import kernels
 
 __all__ = ["pair_residual_levels", "residual_reaches", "semi_global_aggregate", "semi_global_aggregate_with_winner"]
@@ -148,6 +149,6 @@ def residual_reaches(best_cost: torch.Tensor, wanted: torch.Tensor | None, windo
         counted, under = best_cost.abs() < torch.inf, best_cost / window_size ** 2 < level  # NaN, +inf: not under
         if wanted is not None:
             counted, under = counted & wanted, under & wanted
-        counted, under = counted.flatten(1).sum(1), under.flatten(1).sum(1)
+        counted, under = count_along(counted.flatten(1), 1), count_along(under.flatten(1), 1)
         return torch.where(counted > 0, under <= (counted - 1) // 2, torch.zeros_like(counted, dtype=best_cost.dtype)
                            >= level)

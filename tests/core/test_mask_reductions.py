@@ -1,12 +1,12 @@
-"""any_along, all_along, any_true, all_true, has_nan: torch's ``any``, ``all`` and NaN test of a mask or values, the
-same answers by a byte maximum or minimum, or one maximum."""
+"""any_along, all_along, any_true, all_true, count_along, has_nan: torch's ``any``, ``all``, ``sum`` and NaN test of a
+mask or values, the same answers by a byte maximum, minimum or sum, or one maximum."""
 
 from __future__ import annotations
 
 import pytest
 import torch
 
-from svs_torch.core.mask_reductions import all_along, all_true, any_along, any_true, has_nan
+from svs_torch.core.mask_reductions import all_along, all_true, any_along, any_true, count_along, has_nan
 
 
 @pytest.mark.parametrize("dim", [0, 1, -1, -2])
@@ -30,6 +30,21 @@ def test_any_along_empty_and_other_dtypes():
     assert any_along(torch.zeros(0, 4, dtype=torch.bool), 1).shape == (0,)
     values = torch.tensor([[0.0, 2.0], [0.0, 0.0]])
     assert torch.equal(any_along(values, 1), torch.tensor([True, False]))
+
+
+@pytest.mark.parametrize("dim", [0, 1, -1, (1, 2), (2, 3)])
+@pytest.mark.parametrize("keepdim", [False, True])
+def test_count_along_equals_torch_sum(generator, dim, keepdim):
+    """Bytes summed into int32: the int64 counts of ``sum``, contiguous or not, all-False, all-True, an empty
+    dimension; a non-bool tensor takes torch's ``sum``."""
+    mask = torch.rand(4, 3, 9, 11, generator=generator) > 0.4
+    mask[1] = False
+    mask[2] = True
+    for case in (mask, mask.transpose(-1, -2), mask[:, :, ::2, 1:], torch.zeros(4, 0, 9, 11, dtype=torch.bool)):
+        found = count_along(case, dim, keepdim)
+        assert found.dtype == torch.int64 and torch.equal(found, case.sum(dim=dim, keepdim=keepdim))
+    values = torch.tensor([[0.5, 2.0], [1.0, 0.0]])
+    assert torch.equal(count_along(values, 1), values.sum(1))
 
 
 @pytest.mark.parametrize("dim", [0, 1, -1])
