@@ -16,8 +16,7 @@ import torch.nn.functional as F
 
 from ..core.checks import InputError, check_positive_scalar
 from ..core.numerics import per_pair
-from .cost_volume import _check_pair, _check_range
-from .cost_volume import _box_sum, _costs_in_cache, _crops, _prefilter, check_volume_size
+from .cost_volume import _box_sum, _check_pair, _check_range, _costs_in_cache, _crops, _prefilter, check_volume_size
 from .dense_config import DenseConfig
 
 __all__ = ["soft_block_match"]

@@ -174,9 +174,10 @@ def test_residual_names_a_bad_argument(best, wanted, window_size, name):
 
 
 def test_whole_view_residual_is_the_fused_kernels_and_the_torch_paths():
-    """:func:`block_match_sad_with_residual` (the nearness segmenter's noise gate): the map is
-    :func:`block_match_sad`'s and the residual the median winning cost per window pixel, the same from the fused
-    kernel and the torch path, pair by pair; a noisy pair's is above a clean one's."""
+    """:func:`block_match_sad_with_residual`: the map is :func:`block_match_sad`'s and the residual the median
+    winning cost per window pixel, the same from the fused kernel and the torch path, pair by pair; a noisy pair's
+    is above a clean one's; :func:`block_match_sad_noisy_pairs` (the nearness segmenter's noise gate) gives the
+    same map and the residual's verdict at levels below, at and above it."""
     noisy_left, noisy_right = _noisy_plane(seed=10, sigma=0.04)
     clean_left, clean_right = _noisy_plane(seed=11, sigma=0.0)
     left, right = torch.cat([clean_left, noisy_left]), torch.cat([clean_right, noisy_right])

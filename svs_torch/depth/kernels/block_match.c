@@ -62,9 +62,10 @@
 #define BOX_CHUNK 256
 
 /* As BOX_CASE for a wide window (KK >= 9), through sums of three: t[x] = v[x] + v[x + 1] + v[x + 2], then
- * c[x] = t[x] + t[x + 3] + ... + the KK mod 3 values left, 4 adds a column for K = 9 where BOX_CASE takes 8 (the
- * block matching of 8 real 320x240 pairs, one thread, 80 disparities: 40.7 -> 38.4 ms at K = 9, 42.6 -> 40.3 at
- * K = 11; no faster at K = 7). Whole numbers, so the same sums in any order. */
+ * c[x] = t[x] + t[x + 3] + ... + the KK mod 3 values left, 4 adds a column for K = 9 where BOX_CASE takes 8. The
+ * block matching of 8 real 320x240 pairs, one thread, 80 disparities: K = 9 and 11 2-6 % faster, K = 13 47.9 ->
+ * 40.3 ms, K = 19 and 21 94 and 84 -> 43 and 45 ms (there the unrolled sum had not vectorised); no faster at K = 7.
+ * Whole numbers, so the same sums in any order. */
 #define BOX3_CASE(COST, KK)                                                                                       \
     case KK:                                                                                                      \
         for (int64_t x0 = 0; x0 < n; x0 += BOX_CHUNK) {                                                           \
