@@ -26,7 +26,7 @@ from ..core.checks import check_image
 from ..core.compiling import maybe_compiled
 from ..core.inference import outside_inference_mode
 from . import kernels
-from .integral import grid_box_corners, image_means, integral_image, integral_phases, pad_integral
+from .integral import grid_box_corners, integral_image, integral_phases, pad_integral
 
 __all__ = ["HessianOctave", "filter_sizes", "hessian_octaves"]
 
@@ -119,7 +119,7 @@ def _padded_table(image: torch.Tensor, pad: int, use_kernel: bool) -> torch.Tens
     padded = None
     if use_kernel:
         check_image(image, "image", check_range=False)
-        padded = kernels.padded_integral(image, image_means(image), pad)
+        padded = kernels.padded_integral(image, None, pad)  # the kernel takes image_means' means itself
     if padded is None:
         padded = pad_integral(integral_image(image, subtract_mean=True), pad)
     return padded

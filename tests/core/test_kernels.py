@@ -83,6 +83,12 @@ def test_padded_integral_kernel_is_bit_identical_to_torch(images):
     for batch in (images[..., :263, :317], images[:1, :, :1, :1]):
         table = features_kernels.padded_integral(batch, image_means(batch), 23)
         assert torch.equal(table, pad_integral(integral_image(batch, subtract_mean=True), 23))
+        assert torch.equal(features_kernels.padded_integral(batch, None, 23), table)  # the kernel's own means
+    # Its means are image_means' (a double sum in pixel order, as torch's cumsum carries it): on a native-size
+    # image too, and with values whose float32 running sums would drift.
+    large = torch.rand(2, 1, 2000, 2900, generator=torch.Generator().manual_seed(5)) * 1e3 - 400
+    assert torch.equal(features_kernels.padded_integral(large, None, 2),
+                       features_kernels.padded_integral(large, image_means(large), 2))
     assert features_kernels.padded_integral(images.double(), images.double().mean(dim=(-2, -1)).flatten(), 23) is None
 
 

@@ -85,24 +85,26 @@ def check_border(pad: int, height: int, width: int) -> None:
                          f"{values} values (at most {MAX_TABLE_VALUES}); a keypoint's reach is far smaller")
 
 
-def padded_integral(image: torch.Tensor, means: torch.Tensor, pad: int) -> torch.Tensor | None:
+def padded_integral(image: torch.Tensor, means: torch.Tensor | None, pad: int) -> torch.Tensor | None:
     """``pad_integral(integral_image(image − means), pad)`` of ``svs_torch.features.hessian`` in one pass per image (see
     the C source), bit for bit: ``image`` ``(B, 1, H, W)`` float32, ``means`` ``(B,)`` float32 (each image's
-    own, subtracted from its pixels). Returns the table ``(B, 1, H + 1 + 2·pad, W + 1 + 2·pad)``, or None when
-    the kernel is not available or the inputs do not fit its contract."""
+    own, subtracted from its pixels; None: ``image_means(image)``, taken by the kernel). Returns the table
+    ``(B, 1, H + 1 + 2·pad, W + 1 + 2·pad)``, or None when the kernel is not available or the inputs do not fit
+    its contract."""
     dims = check_shape(image, "image", ["B", 1, "H", "W"])
-    check_shape(means, "means", [dims["B"]])
+    if means is not None:
+        check_shape(means, "means", [dims["B"]])
     check_border(pad, dims["H"], dims["W"])
-    if not on_cpu(torch.float32, image, means):
+    if not on_cpu(torch.float32, image, *([] if means is None else [means])):
         return None
     library = load("padded_integral")
     if library is None:
         return None
     b, _, h, w = image.shape
-    image, means = image.contiguous(), means.contiguous()
+    image, means = image.contiguous(), None if means is None else means.contiguous()
     out = torch.empty(b, 1, h + 1 + 2 * pad, w + 1 + 2 * pad)
-    status = library.padded_integral(image.data_ptr(), means.data_ptr(), b, h, w, pad, out.data_ptr(),
-                                     torch.get_num_threads())
+    status = library.padded_integral(image.data_ptr(), None if means is None else means.data_ptr(), b, h, w, pad,
+                                     out.data_ptr(), torch.get_num_threads())
     return None if status != 0 else out
 
 

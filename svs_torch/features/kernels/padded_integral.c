@@ -8,6 +8,11 @@
  * CPU cumsum accumulates float32 in double), the row sums over the rounded column sums. So the table is
  * bit-identical (tests/core/test_kernels.py).
  *
+ * Without ``means`` (NULL) each image's mean is taken here as svs_torch.features.integral.image_means takes it: its
+ * pixels summed in order in double (what torch's cumsum of the flattened image carries to its last element),
+ * rounded to float32, then divided by the pixel count in float32. Torch's cumsum wrote every running sum to keep
+ * the last (0.2 ms a 320 x 240 pair).
+ *
  * Build: cc -O3 -march=native -ffp-contract=off -fPIC -shared -fopenmp (see svs_torch/core/kernels/loader.py).
  */
 #include <stdint.h>
@@ -18,7 +23,8 @@
 
 /* image: (B, H, W) float32 contiguous; means: (B,) float32, subtracted from every pixel; out: (B, PH, PW) with
  * PH = H + 1 + 2 pad, PW = W + 1 + 2 pad: out[pad + 1 + y][pad + 1 + x] = the sum over [0, y] x [0, x], row and
- * column pad of zeros, every border replicated outwards. Images are shared among num_threads OpenMP threads.
+ * column pad of zeros, every border replicated outwards; means NULL: each image's own (above). Images are shared
+ * among num_threads OpenMP threads.
  * Returns 0, or -1 when memory could not be had (nothing is written; the caller runs its torch path). */
 int padded_integral(const float *image, const float *means, int64_t B, int64_t H, int64_t W, int64_t pad,
                     float *out, int64_t num_threads) {
@@ -35,7 +41,14 @@ int padded_integral(const float *image, const float *means, int64_t B, int64_t H
 #pragma omp for schedule(static)
             for (int64_t b = 0; b < B; ++b) {
                 const float *source = image + b * H * W;
-                const float mean = means[b];
+                float mean;
+                if (means) {
+                    mean = means[b];
+                } else {
+                    double sum = 0.0;
+                    for (int64_t i = 0; i < H * W; ++i) sum += (double)source[i];
+                    mean = (float)sum / (float)(H * W);
+                }
                 float *table = out + b * PH * PW;
                 /* Rows 0 .. pad: the zero row in front, replicated upwards. */
                 memset(table, 0, sizeof(float) * (size_t)((pad + 1) * PW));
