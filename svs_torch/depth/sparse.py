@@ -23,6 +23,7 @@ import torch
 from ..core.checks import (InputError, check_dtype, check_finite, check_instance, check_percentiles, check_real,
                            check_shape)
 from ..core.kernels.checks import check_image_hw
+from ..core.mask_reductions import count_along
 from ..geometry.rectification import map_points
 from .depth_types import (Accuracy, DepthConfig, DepthResult, Disparities, NearestObstacle, ObjectDepths, ObstacleSide,
                           PointDepths, RangeEstimate)
@@ -205,8 +206,8 @@ def _region_geometry(labels: torch.Tensor, region_labels: torch.Tensor,
     was said "on the left at 0.9 metres", an audit)."""
     members = labels == slot_labels(region_labels).view(*region_labels.shape, 1, 1)  # (B, N, H, W)
     # Counted as bytes into int32 (a bool sum goes through int64): 0.15 against 0.44 ms for 8 pairs of two
-    # 320×240 slots; counts stay far below 2³¹.
-    per_column = members.view(torch.uint8).sum(dim=2, dtype=torch.int32).long()  # (B, N, W)
+    # 320×240 slots.
+    per_column = count_along(members, 2)  # (B, N, W)
     return column_sides(per_column, image_hw[:, 1:], dtype)
 
 

@@ -25,6 +25,7 @@ import dataclasses
 
 import torch
 
+from ..core.mask_reductions import count_along
 from ..depth.dense_config import DenseDisparity
 from ..depth.depth_types import DepthResult
 from ..depth.sparse import column_sides
@@ -76,8 +77,8 @@ def near_part_sides(depth: DepthResult, dense: DenseDisparity, object_labels: to
     # Compared as disparities (f·B over each slot's bounds in metres): no division over the map.
     low = objects.depth_low_m.detach().to(disparity.dtype)[pair, slot].clamp_min(1e-12).view(-1, 1, 1)
     near = members & (denominator >= scale / (low * NEAR_PART_RATIO))
-    total, near_count = _count(members), _count(near)
-    far_count = _count(members & (denominator <= scale / (low * FAR_PART_RATIO)))
+    total, near_count = count_along(members, (1, 2)), count_along(near, (1, 2))
+    far_count = count_along(members & (denominator <= scale / (low * FAR_PART_RATIO)), (1, 2))
     two = ((near_count > 0) & (far_count >= MIN_FAR_SHARE * total)
            & (total - near_count - far_count <= MAX_BETWEEN_SHARE * total))
     cut = cut[pair, slot]
@@ -85,7 +86,7 @@ def near_part_sides(depth: DepthResult, dense: DenseDisparity, object_labels: to
         return depth
     part = torch.where(two.view(-1, 1, 1), near, region & cut.view(-1, 1, 1))
     side = objects.side.clone()
-    per_column = part.view(torch.uint8).sum(dim=1, dtype=torch.int32)  # (K, W)
+    per_column = count_along(part, 1)  # (K, W)
     part_side = column_sides(per_column, image_hw[pair, 1], disparity.dtype, STRAY_SHARE)[2]
     side[pair, slot] = torch.where(two | cut, part_side, side[pair, slot])
     objects = dataclasses.replace(objects, side=side)
@@ -94,8 +95,3 @@ def near_part_sides(depth: DepthResult, dense: DenseDisparity, object_labels: to
         at_slot = side.gather(1, nearest.slot.clamp_min(0).view(b, 1)).view(b)
         nearest = dataclasses.replace(nearest, side=torch.where(nearest.valid, at_slot, nearest.side))
     return dataclasses.replace(depth, objects=objects, nearest=nearest)
-
-
-def _count(pixels: torch.Tensor) -> torch.Tensor:
-    """``(K,)`` int32 count of ``pixels`` ``(K, H, W)`` bool, as bytes (a bool sum goes through int64)."""
-    return pixels.view(torch.uint8).sum(dim=(1, 2), dtype=torch.int32)
