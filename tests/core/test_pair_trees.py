@@ -54,3 +54,21 @@ def test_taking_every_pair_in_order_is_the_tree_itself():
     assert shuffled is not whole and torch.equal(shuffled.maps, whole.maps.flip(0))
     part = take_pairs(whole, torch.tensor([0, 1]), 3)
     assert part.maps.data_ptr() != whole.maps.data_ptr()
+
+
+def test_putting_every_pair_in_order_takes_the_parts_leaves_as_a_copy_would_give_them():
+    """Every pair in order (a second pass kept for a one-pair batch, as guide runs it) gives ``part``'s per-pair
+    leaves themselves, equal to what writing them into copies gives; ``tree``'s other leaves stay; a leaf of
+    another shape is still broadcast into a copy of ``tree``'s; ``tree`` is never written to."""
+    whole, other = _outer(2, 0.0), _outer(2, 100.0)
+    merged = put_pairs(whole, torch.arange(2), other, 2)
+    assert merged.maps is other.maps and merged.inner.values is other.inner.values
+    assert merged.names == other.names and merged.shared is whole.shared and merged.inner.count == 7
+    reference = put_pairs(whole, torch.tensor([1, 0]), take_pairs(other, torch.tensor([1, 0]), 2), 2)
+    assert torch.equal(merged.maps, reference.maps) and torch.equal(merged.inner.values, reference.inner.values)
+    narrow = Outer(other.maps, Inner(other.inner.values[:, :1], 7), other.names, other.shared)
+    written = put_pairs(whole, torch.arange(2), narrow, 2)
+    assert written.inner.values.shape == (2, 2)
+    assert torch.equal(written.inner.values, other.inner.values[:, :1].expand(2, 2))
+    fresh = _outer(2, 0.0)
+    assert torch.equal(whole.maps, fresh.maps) and torch.equal(whole.inner.values, fresh.inner.values)
