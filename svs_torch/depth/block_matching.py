@@ -27,13 +27,14 @@ __all__ = ["block_match_sad", "block_match_sad_noisy_pairs", "block_match_sad_wi
 SMOOTH_BLOCK_PAIRS = 4
 
 
-def _noisy_pairs(best_cost: torch.Tensor, computed: torch.Tensor, config: DenseConfig
-                 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Each pair's matching residual over its ``computed`` pixels (winner costs ``best_cost``, ``(B, h, w)``
-    each) and whether it reaches ``config.smoothing_min_residual_levels`` with at least one such pixel, ``(B,)``
-    each: the one gate of the torch path (:func:`_smooth`) and the fused kernel's (:func:`_smooth_noisy_pairs`)."""
-    residual = pair_residual_levels(best_cost, computed, config.window_size)
-    return residual, (residual >= config.smoothing_min_residual_levels) & computed.flatten(1).any(1)
+def _noisy_pairs(best_cost: torch.Tensor, computed: torch.Tensor, config: DenseConfig) -> torch.Tensor:
+    """Whether each pair's matching residual over its ``computed`` pixels (winner costs ``best_cost``, ``(B, h, w)``
+    each) reaches ``config.smoothing_min_residual_levels`` with at least one such pixel, ``(B,)`` bool: the one gate
+    of the torch path (:func:`_smooth`) and the fused kernel's (:func:`_smooth_noisy_pairs`). Counted
+    (:func:`~svs_torch.depth.semi_global.residual_reaches`, the verdicts of the median bit for bit), as the
+    nearness segmenter's gate is: 8 coarse retries' maps, one thread, 1.47 → 0.46 ms."""
+    level = config.smoothing_min_residual_levels
+    return residual_reaches(best_cost, computed, config.window_size, level) & computed.flatten(1).any(1)
 
 
 def _smooth(costs: torch.Tensor, minimum: tuple[torch.Tensor, torch.Tensor], config: DenseConfig,
@@ -48,9 +49,10 @@ def _smooth(costs: torch.Tensor, minimum: tuple[torch.Tensor, torch.Tensor], con
     added to theirs times ``config.smoothing_intensity_weight`` before the aggregation (its docstring)."""
     wanted, own = region
     core = slice(extra, costs.shape[-1] - extra)
-    residual, noisy = _noisy_pairs(minimum[0][..., core], wanted, config)
+    noisy = _noisy_pairs(minimum[0][..., core], wanted, config)
     if not bool(noisy.any()):
         return costs, minimum
+    residual = pair_residual_levels(minimum[0][..., core], wanted, config.window_size)  # the penalties' unit
     index = noisy.nonzero().squeeze(1)
     all_noisy = len(index) == len(costs)
     # The aggregation only reads its volume: the whole batch's is not copied, nor masked where every pair's box
@@ -293,7 +295,7 @@ def _smooth_noisy_pairs(left: torch.Tensor, right: torch.Tensor, mask: torch.Ten
     ``config.smoothing_min_residual_levels`` matched again on the torch cost volume, aggregated (:func:`_smooth`):
     the values the torch path alone gives, without a volume for the clean pairs."""
     disparity, valid, best_cost = found
-    noisy = _noisy_pairs(best_cost, ~best_cost.isnan(), config)[1]
+    noisy = _noisy_pairs(best_cost, ~best_cost.isnan(), config)
     if not bool(noisy.any()):
         return disparity, valid
     counts = search.pair_num_disparities
